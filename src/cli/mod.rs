@@ -1,0 +1,24 @@
+//! The `rall` command line (clap). Each subcommand lives in its own file.
+
+pub mod inspect;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(name = "rall", version, about = "Risk-averse legged locomotion (RALL): train, evaluate and inspect quadruped policies on CPU")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Print a model's bodies, joints, actuators and mass, and check that the robot stands under PD.
+    Inspect(inspect::InspectArgs),
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Inspect(args) => inspect::run(&args),
+    }
+}

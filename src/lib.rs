@@ -1,0 +1,16 @@
+//! `rall`: risk-averse legged locomotion (RALL) on CPU.
+//!
+//! Layers, top to bottom (dependencies only point down):
+//! - [`sim`]: the only module with `unsafe`; safe types over MuJoCo 2.2.
+//! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
+//! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
+
+#[cfg(feature = "sim")]
+pub mod robot;
+#[cfg(feature = "sim")]
+pub mod sim;
+
+pub mod learn;
+
+#[cfg(feature = "sim")]
+pub mod cli;

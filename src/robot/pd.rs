@@ -1,0 +1,102 @@
+//! Joint-space PD control: the policy's action becomes joint torques.
+
+use serde::{Deserialize, Serialize};
+
+use super::layout::NUM_JOINTS;
+
+/// Low-level control settings (paper: PD at 200 Hz, Kp 50, Kd 0.8, policy at 50 Hz).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControlConfig {
+    /// Physics time step (s).
+    pub physics_dt_s: f64,
+    /// Physics steps per policy step (4 -> 50 Hz policy at dt 0.005).
+    pub decimation: usize,
+    /// Proportional gain (N m / rad).
+    pub kp_nm_per_rad: f64,
+    /// Derivative gain (N m s / rad).
+    pub kd_nm_s_per_rad: f64,
+    /// q_target = q_default + action_scale * action (rad per unit action).
+    pub action_scale_rad: f64,
+    /// Actions are clipped to [-clip, clip] before scaling.
+    pub clip_actions: f64,
+    /// Torque limits (N m) of hip, thigh, calf motors.
+    pub torque_limits_nm: [f64; 3],
+    /// Keyframe holding the default joint angles and the initial base pose.
+    pub default_keyframe: String,
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        ControlConfig {
+            physics_dt_s: 0.005,
+            decimation: 4,
+            kp_nm_per_rad: 50.0,
+            kd_nm_s_per_rad: 0.8,
+            action_scale_rad: 0.25,
+            clip_actions: 100.0,
+            torque_limits_nm: [44.0, 44.0, 55.0],
+            default_keyframe: "stand".into(),
+        }
+    }
+}
+
+impl ControlConfig {
+    /// Policy period (s).
+    pub fn policy_dt_s(&self) -> f64 {
+        self.physics_dt_s * self.decimation as f64
+    }
+
+    /// Refuses values that cannot work, naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = [
+            ("control.physics_dt_s", self.physics_dt_s),
+            ("control.kp_nm_per_rad", self.kp_nm_per_rad),
+            ("control.action_scale_rad", self.action_scale_rad),
+            ("control.clip_actions", self.clip_actions),
+        ];
+        for (key, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{key} must be a positive number, got {v}"));
+            }
+        }
+        if !(self.kd_nm_s_per_rad.is_finite() && self.kd_nm_s_per_rad >= 0.0) {
+            return Err(format!("control.kd_nm_s_per_rad must be >= 0, got {}", self.kd_nm_s_per_rad));
+        }
+        if self.decimation == 0 {
+            return Err("control.decimation must be at least 1".into());
+        }
+        if self.torque_limits_nm.iter().any(|&t| !(t.is_finite() && t > 0.0)) {
+            return Err(format!("control.torque_limits_nm must be positive, got {:?}", self.torque_limits_nm));
+        }
+        Ok(())
+    }
+
+    /// Torque limit (N m) of joint `i` in SDK order.
+    pub fn torque_limit_nm(&self, joint: usize) -> f64 {
+        self.torque_limits_nm[joint % 3]
+    }
+
+    /// Joint targets (rad) for a policy action: q_default + scale * clip(action).
+    pub fn joint_targets(&self, default_rad: &[f64; NUM_JOINTS], action: &[f32]) -> [f64; NUM_JOINTS] {
+        std::array::from_fn(|i| {
+            let a = (action[i] as f64).clamp(-self.clip_actions, self.clip_actions);
+            default_rad[i] + self.action_scale_rad * a
+        })
+    }
+
+    /// tau = clip(Kp (q_target - q) - Kd qdot, +-limit)  (N m), SDK order.
+    #[inline]
+    pub fn pd_torques(
+        &self,
+        target_rad: &[f64; NUM_JOINTS],
+        q_rad: &[f64; NUM_JOINTS],
+        qd_rad_s: &[f64; NUM_JOINTS],
+    ) -> [f64; NUM_JOINTS] {
+        std::array::from_fn(|i| {
+            let tau = self.kp_nm_per_rad * (target_rad[i] - q_rad[i]) - self.kd_nm_s_per_rad * qd_rad_s[i];
+            let limit = self.torque_limit_nm(i);
+            tau.clamp(-limit, limit)
+        })
+    }
+}
