@@ -331,12 +331,44 @@ impl Data {
     }
 }
 
-/// Raw-FFI access for benchmarks that compare our layer with bare `mj_step`.
-/// Not part of the stable API; used by `benches/physics.rs` only.
+/// Raw-FFI loops for benchmarks that compare our layer with bare `mj_step`.
+/// Not part of the stable API; used by `benches/` only.
 #[doc(hidden)]
 pub mod raw_bench {
     use super::*;
-    /// Steps `n` times with the raw `mj_step`, no checks.
+
+    /// Where the PD law reads and writes, in raw array offsets.
+    pub struct RawPd<'a> {
+        pub qpos_adr: &'a [usize],
+        pub dof_adr: &'a [usize],
+        pub actuator: &'a [usize],
+        pub target_rad: &'a [f64],
+        pub kp: f64,
+        pub kd: f64,
+        pub limit_nm: &'a [f64],
+    }
+
+    /// `n` bare `mj_step` calls, each after the same PD law written straight
+    /// into `d->ctrl` from `d->qpos`/`d->qvel` pointers: no checks, no slices.
+    pub fn raw_pd_steps(model: &Model, data: &mut Data, n: usize, pd: &RawPd) {
+        let d = data.ptr.as_ptr();
+        for _ in 0..n {
+            // SAFETY: data was made for model (constructor invariant); the
+            // offsets come from the same model.
+            unsafe {
+                let (qpos, qvel, ctrl) = ((*d).qpos, (*d).qvel, (*d).ctrl);
+                for i in 0..pd.actuator.len() {
+                    let e = *qpos.add(pd.qpos_adr[i]);
+                    let v = *qvel.add(pd.dof_adr[i]);
+                    let tau = pd.kp * (pd.target_rad[i] - e) - pd.kd * v;
+                    *ctrl.add(pd.actuator[i]) = tau.clamp(-pd.limit_nm[i], pd.limit_nm[i]);
+                }
+                ffi::mj_step(model.raw(), d);
+            }
+        }
+    }
+
+    /// `n` bare `mj_step` calls with whatever ctrl is set.
     pub fn raw_steps(model: &Model, data: &mut Data, n: usize) {
         for _ in 0..n {
             // SAFETY: data was made for model (constructor invariant).
