@@ -1,2 +1,50 @@
 //! The learner: networks, risk measures, rollout storage and the PPO update.
-//! Compiles without MuJoCo (`cargo check --no-default-features --lib`).
+//! Compiles without MuJoCo (`cargo check --no-default-features --lib`) and uses
+//! no other module of this crate.
+//!
+//! - [`nets`]: Gaussian actor, IQN critic, scalar critic (hand-written backward
+//!   over [`mat`]'s GEMM; see `mat` for why not dfdx autograd).
+//! - [`risk`]: distortions (CVaR, Wang), IQR, quantile Huber loss.
+//! - [`storage`]: rollout buffer, GAE, IQN targets (construction documented there).
+//! - [`ppo`]: the update.
+//! - [`learner`]: the [`Learner`] facade and [`LearnerConfig`].
+//! - [`checkpoint`]: atomic safetensors files with metadata.
+//!
+//! Typical loop (the runner's):
+//! ```no_run
+//! # use rall::learn::*;
+//! # fn env_step(_: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<bool>, Vec<bool>, Vec<f32>) { unimplemented!() }
+//! # fn main() -> anyhow::Result<()> {
+//! let cfg = LearnerConfig::default();
+//! let (envs, steps, obs_dim, act_dim) = (256, 24, 48, 12);
+//! let mut learner = Learner::new(obs_dim, act_dim, &cfg, 0)?;
+//! let mut rng = rand::thread_rng();
+//! let mut rollout = Rollout::new(steps, envs, obs_dim, act_dim);
+//! let mut obs = vec![0.0; envs * obs_dim];
+//! for _ in 0..steps {
+//!     let out = learner.act(&obs, &mut rng);
+//!     let (next, rew, done, time_out, final_obs) = env_step(&out.actions);
+//!     rollout.push(&obs, &out, &rew, &done, &time_out, &final_obs)?;
+//!     obs = next;
+//! }
+//! rollout.set_last_obs(&obs)?;
+//! let stats = learner.update(&rollout)?;
+//! # Ok(()) }
+//! ```
+
+pub mod actor_critic;
+pub mod adam;
+pub mod checkpoint;
+pub mod learner;
+pub mod mat;
+pub mod nets;
+pub mod ppo;
+pub mod risk;
+pub mod storage;
+
+pub use actor_critic::{ActorCritic, Critic};
+pub use checkpoint::{load_checkpoint, save_checkpoint};
+pub use learner::{CriticKind, Learner, LearnerConfig, NamedTensor};
+pub use ppo::{LrSchedule, PpoConfig, UpdateStats};
+pub use risk::{Distortion, IQR_TAUS};
+pub use storage::{ActOutput, Rollout};

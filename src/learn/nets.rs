@@ -1,0 +1,506 @@
+//! Networks with hand-written backward passes over [`super::mat`]:
+//! - [`GaussianActor`]: MLP `obs -> hidden (ELU) -> action mean`, plus a learned
+//!   state-independent log-std.
+//! - [`IqnCritic`]: `Z_tau(s) = head(phi(s) * psi(tau))` (IQN, Dabney et al. 2018).
+//! - [`ScalarCritic`]: MLP `obs -> hidden (ELU) -> V(s)` (risk-neutral baseline).
+//!
+//! Every network keeps its parameters in one flat [`ParamSet`] (named views for
+//! checkpoints, flat slices for Adam and the global gradient norm). Shapes are
+//! row-major; a batch of `b` inputs is a `b x dim` slice. Linear weights are
+//! stored `in x out` so that `y = x W + b`.
+
+use super::mat::{add_col_sums, elu_backward_inplace, elu_inplace, fill_rows, gemm, relu_inplace};
+use rand::Rng;
+
+/// One named tensor inside a [`ParamSet`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamEntry {
+    /// e.g. `"l0.weight"` (the owner adds its own prefix in checkpoints).
+    pub name: String,
+    pub shape: Vec<usize>,
+    /// Offset in [`ParamSet::data`].
+    pub offset: usize,
+}
+
+impl ParamEntry {
+    pub fn len(&self) -> usize {
+        self.shape.iter().product()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// All parameters of one network in a single flat vector.
+#[derive(Clone, Debug, Default)]
+pub struct ParamSet {
+    pub data: Vec<f32>,
+    pub entries: Vec<ParamEntry>,
+}
+
+impl ParamSet {
+    /// Append a tensor filled by `init`; returns its offset.
+    fn add(&mut self, name: &str, shape: &[usize], mut init: impl FnMut() -> f32) -> usize {
+        let offset = self.data.len();
+        let n: usize = shape.iter().product();
+        self.data.extend((0..n).map(|_| init()));
+        self.entries.push(ParamEntry {
+            name: name.to_string(),
+            shape: shape.to_vec(),
+            offset,
+        });
+        offset
+    }
+
+    /// PyTorch's default `nn.Linear` init (what rsl_rl uses): W, b ~ U(+-1/sqrt(in)).
+    fn add_linear(&mut self, name: &str, inp: usize, out: usize, rng: &mut impl Rng) -> Linear {
+        let bound = 1.0 / (inp as f32).sqrt();
+        let w = self.add(&format!("{name}.weight"), &[inp, out], || {
+            rng.gen_range(-bound..bound)
+        });
+        let b = self.add(&format!("{name}.bias"), &[out], || rng.gen_range(-bound..bound));
+        Linear { w, b, inp, out }
+    }
+
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+}
+
+/// Offsets of one affine layer `y[b x out] = x[b x inp] W[inp x out] + bias[out]`.
+#[derive(Clone, Copy, Debug)]
+struct Linear {
+    w: usize,
+    b: usize,
+    inp: usize,
+    out: usize,
+}
+
+impl Linear {
+    /// `y = x W + b` (y is resized to `batch x out`).
+    fn forward(&self, p: &[f32], x: &[f32], batch: usize, y: &mut Vec<f32>) {
+        y.resize(batch * self.out, 0.0);
+        fill_rows(y, &p[self.b..self.b + self.out]);
+        let w = &p[self.w..self.w + self.inp * self.out];
+        gemm(batch, self.out, self.inp, x, false, w, false, y, true);
+    }
+
+    /// Accumulates dW, db into `g`; returns dx if asked.
+    fn backward(
+        &self,
+        p: &[f32],
+        g: &mut [f32],
+        x: &[f32],
+        batch: usize,
+        dy: &[f32],
+        want_dx: bool,
+    ) -> Option<Vec<f32>> {
+        let (inp, out) = (self.inp, self.out);
+        gemm(inp, out, batch, x, true, dy, false, &mut g[self.w..self.w + inp * out], true);
+        add_col_sums(dy, &mut g[self.b..self.b + out]);
+        want_dx.then(|| {
+            let mut dx = vec![0.0; batch * inp];
+            gemm(batch, inp, out, dy, false, &p[self.w..self.w + inp * out], true, &mut dx, false);
+            dx
+        })
+    }
+}
+
+/// A multilayer perceptron with ELU between layers.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    layers: Vec<Linear>,
+    /// ELU after the last layer too (the IQN trunk phi(s)); otherwise linear output.
+    activate_last: bool,
+}
+
+/// Per-layer outputs of an [`Mlp`] forward pass, kept for the backward pass.
+#[derive(Clone, Debug, Default)]
+pub struct MlpCache {
+    acts: Vec<Vec<f32>>,
+}
+
+impl MlpCache {
+    /// Output of the last layer (`batch x out_dim`).
+    pub fn output(&self) -> &[f32] {
+        self.acts.last().map(|a| a.as_slice()).unwrap_or(&[])
+    }
+}
+
+impl Mlp {
+    /// `dims = [in, h1, ..., out]`; parameters named `{prefix}l{i}.weight|bias`.
+    fn build(
+        ps: &mut ParamSet,
+        prefix: &str,
+        dims: &[usize],
+        activate_last: bool,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let layers = dims
+            .windows(2)
+            .enumerate()
+            .map(|(i, d)| ps.add_linear(&format!("{prefix}l{i}"), d[0], d[1], rng))
+            .collect();
+        Mlp {
+            layers,
+            activate_last,
+        }
+    }
+
+    pub fn out_dim(&self) -> usize {
+        self.layers.last().map_or(0, |l| l.out)
+    }
+
+    fn activated(&self, l: usize) -> bool {
+        l + 1 < self.layers.len() || self.activate_last
+    }
+
+    /// Forward pass of `x` (`batch x in`); the output is `cache.output()`.
+    pub fn forward(&self, p: &[f32], x: &[f32], batch: usize, cache: &mut MlpCache) {
+        cache.acts.resize_with(self.layers.len(), Vec::new);
+        for (l, layer) in self.layers.iter().enumerate() {
+            let (prev, rest) = cache.acts.split_at_mut(l);
+            let input = if l == 0 { x } else { &prev[l - 1] };
+            layer.forward(p, input, batch, &mut rest[0]);
+            if self.activated(l) {
+                elu_inplace(&mut rest[0]);
+            }
+        }
+    }
+
+    /// Backward pass from `dout` (`batch x out`), accumulating into `g`.
+    /// Returns d/dx only if `want_dx`.
+    pub fn backward(
+        &self,
+        p: &[f32],
+        g: &mut [f32],
+        x: &[f32],
+        batch: usize,
+        cache: &MlpCache,
+        mut dout: Vec<f32>,
+        want_dx: bool,
+    ) -> Option<Vec<f32>> {
+        for (l, layer) in self.layers.iter().enumerate().rev() {
+            if self.activated(l) {
+                elu_backward_inplace(&mut dout, &cache.acts[l]);
+            }
+            let input = if l == 0 { x } else { &cache.acts[l - 1] };
+            match layer.backward(p, g, input, batch, &dout, l > 0 || want_dx) {
+                Some(dx) if l > 0 => dout = dx,
+                dx => return dx,
+            }
+        }
+        None
+    }
+}
+
+/// Gaussian policy: `mean = MLP(obs)`, `std = exp(log_std)` (state independent).
+#[derive(Clone, Debug)]
+pub struct GaussianActor {
+    pub params: ParamSet,
+    mlp: Mlp,
+    log_std: usize,
+    pub obs_dim: usize,
+    pub act_dim: usize,
+}
+
+impl GaussianActor {
+    /// `hidden`: e.g. `[512, 256, 128]`; `init_std`: initial action std (rsl_rl: 1.0).
+    pub fn new(
+        obs_dim: usize,
+        act_dim: usize,
+        hidden: &[usize],
+        init_std: f32,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let mut params = ParamSet::default();
+        let dims: Vec<usize> = [&[obs_dim][..], hidden, &[act_dim]].concat();
+        let mlp = Mlp::build(&mut params, "", &dims, false, rng);
+        let log_std = params.add("log_std", &[act_dim], || init_std.ln());
+        GaussianActor {
+            params,
+            mlp,
+            log_std,
+            obs_dim,
+            act_dim,
+        }
+    }
+
+    /// Log standard deviation per action dimension (`act_dim`).
+    pub fn log_std(&self) -> &[f32] {
+        &self.params.data[self.log_std..self.log_std + self.act_dim]
+    }
+
+    /// Offset of the log-std in the flat parameter (and gradient) vector.
+    pub fn log_std_offset(&self) -> usize {
+        self.log_std
+    }
+
+    /// Action means for `batch` observations, kept in `cache` (`batch x act_dim`).
+    pub fn forward(&self, obs: &[f32], batch: usize, cache: &mut MlpCache) {
+        self.mlp.forward(&self.params.data, obs, batch, cache);
+    }
+
+    /// Inference: action means (`batch x act_dim`).
+    pub fn mean(&self, obs: &[f32], batch: usize) -> Vec<f32> {
+        let mut cache = MlpCache::default();
+        self.forward(obs, batch, &mut cache);
+        cache.acts.pop().unwrap_or_default()
+    }
+
+    /// Accumulate parameter gradients from d loss / d mean (`batch x act_dim`).
+    /// (The log-std gradient is added by the caller at `log_std_offset()`.)
+    pub fn backward(
+        &self,
+        grads: &mut [f32],
+        obs: &[f32],
+        batch: usize,
+        cache: &MlpCache,
+        d_mean: Vec<f32>,
+    ) {
+        self.mlp
+            .backward(&self.params.data, grads, obs, batch, cache, d_mean, false);
+    }
+}
+
+/// Scalar value critic `V(s)`.
+#[derive(Clone, Debug)]
+pub struct ScalarCritic {
+    pub params: ParamSet,
+    mlp: Mlp,
+}
+
+impl ScalarCritic {
+    pub fn new(obs_dim: usize, hidden: &[usize], rng: &mut impl Rng) -> Self {
+        let mut params = ParamSet::default();
+        let dims: Vec<usize> = [&[obs_dim][..], hidden, &[1]].concat();
+        let mlp = Mlp::build(&mut params, "", &dims, false, rng);
+        ScalarCritic { params, mlp }
+    }
+
+    /// Values (`batch`), kept in `cache`.
+    pub fn forward(&self, obs: &[f32], batch: usize, cache: &mut MlpCache) {
+        self.mlp.forward(&self.params.data, obs, batch, cache);
+    }
+
+    /// Inference: `V(s)` for `batch` observations.
+    pub fn values(&self, obs: &[f32], batch: usize) -> Vec<f32> {
+        let mut cache = MlpCache::default();
+        self.forward(obs, batch, &mut cache);
+        cache.acts.pop().unwrap_or_default()
+    }
+
+    /// Accumulate gradients from d loss / d V (`batch`).
+    pub fn backward(&self, grads: &mut [f32], obs: &[f32], batch: usize, cache: &MlpCache, dv: Vec<f32>) {
+        self.mlp
+            .backward(&self.params.data, grads, obs, batch, cache, dv, false);
+    }
+}
+
+/// IQN state-value critic. `phi(s)`: trunk MLP with ELU after every layer
+/// (`[obs, h1, .., hL]`); `psi(tau) = ReLU(W cos(pi i tau) + b)`, `i = 0..num_cos`;
+/// `Z_tau(s) = w . (phi(s) * psi(tau)) + c`. The merge sits at the last hidden
+/// layer (design.md section 4), so with taus shared by a batch the head is one
+/// GEMM: `Z = phi(s) [b x F] . (psi * w)^T [F x N]`.
+#[derive(Clone, Debug)]
+pub struct IqnCritic {
+    pub params: ParamSet,
+    trunk: Mlp,
+    embed: Linear,
+    head_w: usize,
+    head_b: usize,
+    num_cos: usize,
+    feat: usize,
+}
+
+/// Forward-pass intermediates of [`IqnCritic`] for its backward pass.
+#[derive(Clone, Debug, Default)]
+pub struct IqnCache {
+    trunk: MlpCache,
+    /// `N x num_cos` cosine features.
+    cos: Vec<f32>,
+    /// `N x F` psi(tau) (after ReLU).
+    emb: Vec<f32>,
+    /// `N x F` psi(tau) * w.
+    g: Vec<f32>,
+}
+
+impl IqnCritic {
+    /// `hidden`: trunk sizes (e.g. `[512, 256, 128]`); `num_cos`: cosine basis size (64).
+    pub fn new(obs_dim: usize, hidden: &[usize], num_cos: usize, rng: &mut impl Rng) -> Self {
+        assert!(!hidden.is_empty(), "IQN critic needs at least one hidden layer");
+        let mut params = ParamSet::default();
+        let dims: Vec<usize> = [&[obs_dim][..], hidden].concat();
+        let trunk = Mlp::build(&mut params, "trunk.", &dims, true, rng);
+        let feat = trunk.out_dim();
+        let embed = params.add_linear("tau_embed", num_cos, feat, rng);
+        let head = params.add_linear("head", feat, 1, rng);
+        IqnCritic {
+            params,
+            trunk,
+            embed,
+            head_w: head.w,
+            head_b: head.b,
+            num_cos,
+            feat,
+        }
+    }
+
+    /// `Z_tau(s)` for every observation and tau: returns `batch x taus.len()`.
+    pub fn forward(&self, obs: &[f32], batch: usize, taus: &[f32], cache: &mut IqnCache) -> Vec<f32> {
+        let p = &self.params.data;
+        let (n, f) = (taus.len(), self.feat);
+        self.trunk.forward(p, obs, batch, &mut cache.trunk);
+        cache.cos.clear();
+        for &t in taus {
+            cache
+                .cos
+                .extend((0..self.num_cos).map(|i| (std::f32::consts::PI * i as f32 * t).cos()));
+        }
+        self.embed.forward(p, &cache.cos, n, &mut cache.emb);
+        relu_inplace(&mut cache.emb);
+        let w = &p[self.head_w..self.head_w + f];
+        cache.g.clear();
+        for row in cache.emb.chunks_exact(f) {
+            cache.g.extend(row.iter().zip(w).map(|(e, w)| e * w));
+        }
+        let mut z = vec![p[self.head_b]; batch * n];
+        gemm(batch, n, f, cache.trunk.output(), false, &cache.g, true, &mut z, true);
+        z
+    }
+
+    /// Inference: `batch x taus.len()` quantiles.
+    pub fn quantiles(&self, obs: &[f32], batch: usize, taus: &[f32]) -> Vec<f32> {
+        self.forward(obs, batch, taus, &mut IqnCache::default())
+    }
+
+    /// Accumulate gradients from d loss / d Z (`batch x N`).
+    pub fn backward(&self, grads: &mut [f32], obs: &[f32], batch: usize, cache: &IqnCache, dz: &[f32]) {
+        let p = &self.params.data;
+        let f = self.feat;
+        let n = cache.g.len() / f;
+        let phi = cache.trunk.output();
+        grads[self.head_b] += dz.iter().sum::<f32>();
+        let mut dphi = vec![0.0; batch * f];
+        gemm(batch, f, n, dz, false, &cache.g, false, &mut dphi, false);
+        let mut dg = vec![0.0; n * f];
+        gemm(n, f, batch, dz, true, phi, false, &mut dg, false);
+        let w = &p[self.head_w..self.head_w + f];
+        let gw = &mut grads[self.head_w..self.head_w + f];
+        for (dg_row, e_row) in dg.chunks_exact_mut(f).zip(cache.emb.chunks_exact(f)) {
+            for k in 0..f {
+                gw[k] += dg_row[k] * e_row[k];
+                // d pre-ReLU embedding
+                dg_row[k] = if e_row[k] > 0.0 { dg_row[k] * w[k] } else { 0.0 };
+            }
+        }
+        self.embed.backward(p, grads, &cache.cos, n, &dg, false);
+        self.trunk.backward(p, grads, obs, batch, &cache.trunk, dphi, false);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    /// Checks d(sum_i c_i y_i)/dparam against central differences (f64 sums).
+    fn check_grads(
+        params: &mut ParamSet,
+        loss: &dyn Fn(&ParamSet) -> f64,
+        analytic: &[f32],
+        probes: usize,
+    ) {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for _ in 0..probes {
+            let i = rng.gen_range(0..params.len());
+            let old = params.data[i];
+            let h = 1e-2f32;
+            params.data[i] = old + h;
+            let up = loss(params);
+            params.data[i] = old - h;
+            let down = loss(params);
+            params.data[i] = old;
+            let numeric = (up - down) / (2.0 * h as f64);
+            let a = analytic[i] as f64;
+            assert!(
+                (numeric - a).abs() <= 2e-2 * a.abs().max(numeric.abs()) + 2e-3,
+                "param {i}: analytic {a}, numeric {numeric}"
+            );
+        }
+    }
+
+    fn data(n: usize, seed: u64) -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| rng.gen_range(-1.0..1.0)).collect()
+    }
+
+    #[test]
+    fn actor_backward_matches_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let (b, o, a) = (5, 4, 3);
+        let mut actor = GaussianActor::new(o, a, &[6, 5], 1.0, &mut rng);
+        let obs = data(b * o, 2);
+        let c = data(b * a, 3);
+        let mut cache = MlpCache::default();
+        actor.forward(&obs, b, &mut cache);
+        let mut g = vec![0.0; actor.params.len()];
+        actor.backward(&mut g, &obs, b, &cache, c.clone());
+        let mut ps = actor.params.clone();
+        let loss = |ps: &ParamSet| {
+            let mut act = actor.clone();
+            act.params = ps.clone();
+            let m = act.mean(&obs, b);
+            m.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+        };
+        check_grads(&mut ps, &loss, &g, 60);
+        actor.params = ps;
+    }
+
+    #[test]
+    fn iqn_backward_matches_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let (b, o) = (6, 3);
+        let critic = IqnCritic::new(o, &[7, 5], 8, &mut rng);
+        let obs = data(b * o, 5);
+        let taus = [0.05, 0.3, 0.5, 0.77];
+        let c = data(b * taus.len(), 6);
+        let mut cache = IqnCache::default();
+        let _ = critic.forward(&obs, b, &taus, &mut cache);
+        let mut g = vec![0.0; critic.params.len()];
+        critic.backward(&mut g, &obs, b, &cache, &c);
+        let mut ps = critic.params.clone();
+        let loss = |ps: &ParamSet| {
+            let mut cr = critic.clone();
+            cr.params = ps.clone();
+            let z = cr.quantiles(&obs, b, &taus);
+            z.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+        };
+        check_grads(&mut ps, &loss, &g, 120);
+    }
+
+    #[test]
+    fn scalar_backward_matches_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let (b, o) = (4, 3);
+        let critic = ScalarCritic::new(o, &[6, 4], &mut rng);
+        let obs = data(b * o, 9);
+        let c = data(b, 10);
+        let mut cache = MlpCache::default();
+        critic.forward(&obs, b, &mut cache);
+        let mut g = vec![0.0; critic.params.len()];
+        critic.backward(&mut g, &obs, b, &cache, c.clone());
+        let mut ps = critic.params.clone();
+        let loss = |ps: &ParamSet| {
+            let mut cr = critic.clone();
+            cr.params = ps.clone();
+            let v = cr.values(&obs, b);
+            v.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+        };
+        check_grads(&mut ps, &loss, &g, 60);
+    }
+}

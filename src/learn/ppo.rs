@@ -1,0 +1,358 @@
+//! The PPO update (Schulman et al. 2017) with rsl_rl's defaults: clipped
+//! surrogate, value loss (quantile Huber for IQN, MSE for the scalar critic),
+//! entropy bonus, Adam with the adaptive-KL learning rate, global gradient-norm
+//! clipping, per-mini-batch advantage normalisation.
+
+use super::actor_critic::{ActorCritic, Critic, HALF_LN_2PI};
+use super::adam::{AdamConfig, AdamState};
+use super::nets::{IqnCache, MlpCache};
+use super::risk::{midpoint_taus, quantile_huber_loss};
+use super::storage::{gae, next_values, quantile_targets, Rollout};
+use anyhow::Result;
+use rand::seq::SliceRandom;
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+/// Learning-rate schedule.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    /// rsl_rl: `lr /= 1.5` if `kl > 2 desired_kl`, `lr *= 1.5` if `kl < desired_kl / 2`.
+    Adaptive,
+    Fixed,
+}
+
+/// PPO hyper-parameters; `Default` = rsl_rl / the paper.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PpoConfig {
+    /// Passes over the rollout per update.
+    pub num_learning_epochs: usize,
+    /// Mini-batches per epoch (1536 samples each at 256 envs x 24 steps).
+    pub num_mini_batches: usize,
+    /// Surrogate clip epsilon.
+    pub clip_param: f32,
+    /// Discount.
+    pub gamma: f32,
+    /// GAE lambda.
+    pub lam: f32,
+    pub value_loss_coef: f32,
+    pub entropy_coef: f32,
+    /// Initial Adam learning rate.
+    pub learning_rate: f32,
+    pub schedule: LrSchedule,
+    /// Target KL(old || new) per sample for the adaptive schedule.
+    pub desired_kl: f32,
+    pub min_lr: f32,
+    pub max_lr: f32,
+    /// Clip the global L2 norm of all gradients (actor and critic) to this.
+    pub max_grad_norm: f32,
+    /// Normalise advantages to zero mean, unit std within each mini-batch.
+    pub normalize_advantage_per_mini_batch: bool,
+    pub adam: AdamConfig,
+}
+
+impl Default for PpoConfig {
+    fn default() -> Self {
+        PpoConfig {
+            num_learning_epochs: 5,
+            num_mini_batches: 4,
+            clip_param: 0.2,
+            gamma: 0.99,
+            lam: 0.95,
+            value_loss_coef: 1.0,
+            entropy_coef: 0.01,
+            learning_rate: 1e-3,
+            schedule: LrSchedule::Adaptive,
+            desired_kl: 0.01,
+            min_lr: 1e-5,
+            max_lr: 1e-2,
+            max_grad_norm: 1.0,
+            normalize_advantage_per_mini_batch: true,
+            adam: AdamConfig::default(),
+        }
+    }
+}
+
+/// Critic-loss settings the update needs besides [`PpoConfig`].
+#[derive(Clone, Debug)]
+pub struct CriticLossConfig {
+    /// `N`: taus ~ U[0, 1] per mini-batch (shared by its samples) for the prediction.
+    pub num_taus: usize,
+    /// `N'`: target samples per transition, at `tau'_j = (j + 1/2) / N'`.
+    pub num_target_taus: usize,
+    /// Huber threshold kappa.
+    pub kappa: f32,
+    /// Horizon parameter of the IQN targets (see `storage`).
+    pub target_lambda: f32,
+}
+
+/// Averages over all mini-batches of one update (lr and std: after the update).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct UpdateStats {
+    /// Clipped surrogate loss.
+    pub policy_loss: f32,
+    /// Quantile Huber (IQN) or MSE (scalar) loss, before the coefficient.
+    pub value_loss: f32,
+    /// Entropy of the policy per sample (nats).
+    pub entropy: f32,
+    /// Mean KL(old || new) per sample, measured before each step.
+    pub approx_kl: f32,
+    pub learning_rate: f32,
+    /// Mean action std.
+    pub mean_std: f32,
+    /// Fraction of samples with `|ratio - 1| > clip`.
+    pub clip_fraction: f32,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f32,
+}
+
+/// Adam state for actor and critic, the shared step count, and the current lr.
+#[derive(Clone, Debug)]
+pub struct Optimizer {
+    pub actor: AdamState,
+    pub critic: AdamState,
+    /// Adam steps taken (bias correction).
+    pub step: u64,
+    pub lr: f32,
+}
+
+/// Per-transition training targets computed once per update.
+struct Targets {
+    adv: Vec<f32>,
+    /// Scalar: `returns = A + V` (`T*E`); IQN: `N'` target samples per transition.
+    value_targets: Vec<f32>,
+}
+
+fn gather(src: &[f32], width: usize, idx: &[usize]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(idx.len() * width);
+    for &i in idx {
+        out.extend_from_slice(&src[i * width..(i + 1) * width]);
+    }
+    out
+}
+
+/// Values, advantages and critic targets from the collection-time critic.
+fn targets(
+    ac: &ActorCritic,
+    r: &Rollout,
+    cfg: &PpoConfig,
+    ccfg: &CriticLossConfig,
+    rng: &mut impl Rng,
+) -> Targets {
+    let finals: Vec<f32> = r.final_obs.iter().flat_map(|(_, o)| o.iter().copied()).collect();
+    match &ac.critic {
+        Critic::Scalar(c) => {
+            let v = |o: &[f32]| c.values(o, o.len() / r.obs_dim);
+            let values = v(&r.obs);
+            let next = next_values(r, 1, &values, &v(&r.last_obs), &v(&finals));
+            let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
+            let returns = adv.iter().zip(&values).map(|(a, v)| a + v).collect();
+            Targets {
+                adv,
+                value_targets: returns,
+            }
+        }
+        Critic::Iqn(c) => {
+            // one trunk pass per state: the value grid and the target grid together
+            let k = ac.value_taus.len();
+            let nt = ccfg.num_target_taus;
+            let taus: Vec<f32> = ac.value_taus.iter().copied().chain(midpoint_taus(nt)).collect();
+            let split = |o: &[f32]| {
+                let z = c.quantiles(o, o.len() / r.obs_dim, &taus);
+                let mut v = Vec::with_capacity(z.len() / (k + nt));
+                let mut q = Vec::with_capacity(z.len() / (k + nt) * nt);
+                for row in z.chunks_exact(k + nt) {
+                    v.push(row[..k].iter().sum::<f32>() / k as f32);
+                    q.extend_from_slice(&row[k..]);
+                }
+                (v, q)
+            };
+            let (values, z) = split(&r.obs);
+            let (last_v, last_z) = split(&r.last_obs);
+            let (fin_v, fin_z) = split(&finals);
+            let next = next_values(r, 1, &values, &last_v, &fin_v);
+            let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
+            let next_z = next_values(r, nt, &z, &last_z, &fin_z);
+            let value_targets = quantile_targets(r, &next_z, nt, cfg.gamma, ccfg.target_lambda, rng);
+            Targets { adv, value_targets }
+        }
+    }
+}
+
+/// One PPO update over a full rollout.
+pub fn update(
+    ac: &mut ActorCritic,
+    opt: &mut Optimizer,
+    r: &Rollout,
+    cfg: &PpoConfig,
+    ccfg: &CriticLossConfig,
+    rng: &mut impl Rng,
+) -> Result<UpdateStats> {
+    r.validate()?;
+    anyhow::ensure!(
+        r.obs_dim == ac.obs_dim() && r.act_dim == ac.act_dim(),
+        "rollout dims ({}, {}) do not match the networks ({}, {})",
+        r.obs_dim,
+        r.act_dim,
+        ac.obs_dim(),
+        ac.act_dim()
+    );
+    let tg = targets(ac, r, cfg, ccfg, rng);
+    let total = r.num_steps * r.num_envs;
+    let n_mb = cfg.num_mini_batches.clamp(1, total);
+    let (od, ad) = (r.obs_dim, r.act_dim);
+    let vt_width = tg.value_targets.len() / total;
+    let mut stats = UpdateStats::default();
+    let mut count = 0usize;
+    let mut idx: Vec<usize> = (0..total).collect();
+    let mut actor_cache = MlpCache::default();
+    let mut scalar_cache = MlpCache::default();
+    let mut iqn_cache = IqnCache::default();
+    for _ in 0..cfg.num_learning_epochs {
+        idx.shuffle(rng);
+        for mb in 0..n_mb {
+            let batch = &idx[mb * total / n_mb..(mb + 1) * total / n_mb];
+            let b = batch.len();
+            let obs = gather(&r.obs, od, batch);
+            let actions = gather(&r.actions, ad, batch);
+            let old_mu = gather(&r.action_mean, ad, batch);
+            let old_std = gather(&r.action_std, ad, batch);
+            let old_logp = gather(&r.log_probs, 1, batch);
+            let mut adv = gather(&tg.adv, 1, batch);
+            let vtarget = gather(&tg.value_targets, vt_width, batch);
+            if cfg.normalize_advantage_per_mini_batch && b > 1 {
+                let mean = adv.iter().sum::<f32>() / b as f32;
+                let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
+                let inv = 1.0 / (var.sqrt() + 1e-8);
+                adv.iter_mut().for_each(|a| *a = (*a - mean) * inv);
+            }
+
+            // ---- actor ----
+            ac.actor.forward(&obs, b, &mut actor_cache);
+            let mu = actor_cache.output();
+            let log_std = ac.actor.log_std().to_vec();
+            let std: Vec<f32> = log_std.iter().map(|l| l.exp()).collect();
+            let sum_log_std: f32 = log_std.iter().sum();
+
+            // KL(old || new) of diagonal Gaussians, the adaptive-lr signal
+            let mut kl = 0.0f64;
+            for i in 0..b * ad {
+                let (s_new, s_old) = (std[i % ad], old_std[i]);
+                let dm = old_mu[i] - mu[i];
+                kl += ((s_new / s_old).ln() + (s_old * s_old + dm * dm) / (2.0 * s_new * s_new) - 0.5)
+                    as f64;
+            }
+            let kl = (kl / b as f64) as f32;
+            if cfg.schedule == LrSchedule::Adaptive {
+                if kl > 2.0 * cfg.desired_kl {
+                    opt.lr = (opt.lr / 1.5).max(cfg.min_lr);
+                } else if kl < cfg.desired_kl / 2.0 && kl > 0.0 {
+                    opt.lr = (opt.lr * 1.5).min(cfg.max_lr);
+                }
+            }
+
+            // clipped surrogate: L = mean_b max(-A r, -A clip(r, 1-e, 1+e)), r = exp(logp - logp_old)
+            let mut d_mu = vec![0.0f32; b * ad];
+            let mut d_log_std = vec![-cfg.entropy_coef; ad]; // d(-c_e H)/d log_std
+            let (mut pol_loss, mut clipped) = (0.0f64, 0usize);
+            for s in 0..b {
+                let row = s * ad..(s + 1) * ad;
+                let mut sq = 0.0;
+                for j in 0..ad {
+                    let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
+                    sq += z * z;
+                }
+                let logp = -0.5 * sq - sum_log_std - ad as f32 * HALF_LN_2PI;
+                let ratio = (logp - old_logp[s]).exp();
+                let a = adv[s];
+                let unclipped = -a * ratio;
+                let clip = -a * ratio.clamp(1.0 - cfg.clip_param, 1.0 + cfg.clip_param);
+                pol_loss += unclipped.max(clip) as f64;
+                if (ratio - 1.0).abs() > cfg.clip_param {
+                    clipped += 1;
+                }
+                // d L_s / d logp: the unclipped branch carries the gradient when it is the max
+                let g = if unclipped >= clip { -a * ratio / b as f32 } else { 0.0 };
+                if g != 0.0 {
+                    for j in 0..ad {
+                        let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
+                        d_mu[row.start + j] = g * z / std[j]; // dlogp/dmu = (a - mu) / std^2
+                        d_log_std[j] += g * (z * z - 1.0); // dlogp/dlog_std = z^2 - 1
+                    }
+                }
+            }
+            let entropy = sum_log_std + ad as f32 * (0.5 + HALF_LN_2PI);
+            let mut g_actor = vec![0.0f32; ac.actor.params.len()];
+            ac.actor.backward(&mut g_actor, &obs, b, &actor_cache, d_mu);
+            let off = ac.actor.log_std_offset();
+            for (g, d) in g_actor[off..off + ad].iter_mut().zip(&d_log_std) {
+                *g += d;
+            }
+
+            // ---- critic ----
+            let mut g_critic = vec![0.0f32; ac.critic.params().len()];
+            let value_loss = match &ac.critic {
+                Critic::Iqn(c) => {
+                    let taus: Vec<f32> = (0..ccfg.num_taus).map(|_| rng.gen::<f32>()).collect();
+                    let z = c.forward(&obs, b, &taus, &mut iqn_cache);
+                    let mut dz = vec![0.0; z.len()];
+                    let loss = quantile_huber_loss(&z, &taus, &vtarget, ccfg.kappa, &mut dz);
+                    dz.iter_mut().for_each(|d| *d *= cfg.value_loss_coef);
+                    c.backward(&mut g_critic, &obs, b, &iqn_cache, &dz);
+                    loss
+                }
+                Critic::Scalar(c) => {
+                    c.forward(&obs, b, &mut scalar_cache);
+                    let v = scalar_cache.output();
+                    let mut loss = 0.0;
+                    let dv: Vec<f32> = v
+                        .iter()
+                        .zip(&vtarget)
+                        .map(|(v, t)| {
+                            loss += (t - v) * (t - v);
+                            cfg.value_loss_coef * 2.0 * (v - t) / b as f32
+                        })
+                        .collect();
+                    c.backward(&mut g_critic, &obs, b, &scalar_cache, dv);
+                    loss / b as f32
+                }
+            };
+
+            // ---- global grad-norm clip + Adam ----
+            let norm = g_actor
+                .iter()
+                .chain(&g_critic)
+                .map(|g| (*g as f64) * (*g as f64))
+                .sum::<f64>()
+                .sqrt() as f32;
+            if norm > cfg.max_grad_norm {
+                let s = cfg.max_grad_norm / (norm + 1e-6);
+                g_actor.iter_mut().chain(g_critic.iter_mut()).for_each(|g| *g *= s);
+            }
+            opt.step += 1;
+            opt.actor
+                .step(&cfg.adam, opt.lr, opt.step, &mut ac.actor.params.data, &g_actor);
+            opt.critic
+                .step(&cfg.adam, opt.lr, opt.step, &mut ac.critic.params_mut().data, &g_critic);
+
+            stats.policy_loss += (pol_loss / b as f64) as f32;
+            stats.value_loss += value_loss;
+            stats.entropy += entropy;
+            stats.approx_kl += kl;
+            stats.clip_fraction += clipped as f32 / b as f32;
+            stats.grad_norm += norm;
+            count += 1;
+        }
+    }
+    let c = count.max(1) as f32;
+    stats.policy_loss /= c;
+    stats.value_loss /= c;
+    stats.entropy /= c;
+    stats.approx_kl /= c;
+    stats.clip_fraction /= c;
+    stats.grad_norm /= c;
+    stats.learning_rate = opt.lr;
+    stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
+    Ok(stats)
+}
