@@ -298,6 +298,8 @@ pub fn quantile_targets(
                 // n ~ Geometric(1 - lambda) on {1, 2, ...}
                 let n = if lambda <= 0.0 {
                     1
+                } else if lambda >= 1.0 {
+                    t_n // always reaches the segment end
                 } else {
                     let u: f64 = 1.0 - rng.gen::<f64>(); // (0, 1]
                     1 + (u.ln() / ln_lambda).floor().min(1e6) as usize
