@@ -1,0 +1,160 @@
+//! PPO learns a small continuous-control task with both critics.
+//!
+//! Task: a 2D point mass with damped velocity must reach and hold the origin.
+//! `v' = 0.85 v + 0.25 clip(a, -1, 1)`, `p' = p + 0.1 v'`, reward `-|p'|` per
+//! step, start at distance U(0.5, 1.5) at rest, observations `[p, v]` with
+//! N(0, 0.02^2) noise. Episodes time out after 50 steps and terminate (reward
+//! -20) beyond distance 2.5. A trained policy collects about -6.5; random and
+//! initial policies about -50. Threshold: -9 within 100 iterations (64 envs x 24
+//! steps each); measured: IQN passes at iteration 15, scalar at 15-20.
+
+use rall::learn::{CriticKind, Learner, LearnerConfig, Rollout};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+const OBS: usize = 4;
+const ACT: usize = 2;
+const MAX_T: usize = 50;
+const THRESHOLD: f32 = -9.0;
+
+#[derive(Clone)]
+struct PointMass {
+    p: [f32; 2],
+    v: [f32; 2],
+    t: usize,
+}
+
+impl PointMass {
+    fn new(rng: &mut impl Rng) -> Self {
+        let angle = rng.gen_range(0.0..std::f32::consts::TAU);
+        let r = rng.gen_range(0.5..1.5);
+        PointMass {
+            p: [r * angle.cos(), r * angle.sin()],
+            v: [0.0; 2],
+            t: 0,
+        }
+    }
+
+    fn obs(&self, rng: &mut impl Rng, out: &mut Vec<f32>) {
+        for x in [self.p[0], self.p[1], self.v[0], self.v[1]] {
+            out.push(x + 0.02 * rng.sample::<f32, _>(StandardNormal));
+        }
+    }
+
+    /// Returns (reward, terminated, timed_out).
+    fn step(&mut self, a: &[f32]) -> (f32, bool, bool) {
+        for i in 0..2 {
+            self.v[i] = 0.85 * self.v[i] + 0.25 * a[i].clamp(-1.0, 1.0);
+            self.p[i] += 0.1 * self.v[i];
+        }
+        self.t += 1;
+        let d = (self.p[0] * self.p[0] + self.p[1] * self.p[1]).sqrt();
+        if d > 2.5 {
+            return (-20.0, true, false);
+        }
+        (-d, false, self.t >= MAX_T)
+    }
+}
+
+/// Mean return of the deterministic policy over 32 fixed episodes.
+fn evaluate(learner: &Learner) -> f32 {
+    evaluate_with(|obs| learner.act_mean(obs))
+}
+
+fn evaluate_with(mut policy: impl FnMut(&[f32]) -> Vec<f32>) -> f32 {
+    let mut rng = ChaCha8Rng::seed_from_u64(1234);
+    let mut envs: Vec<PointMass> = (0..32).map(|_| PointMass::new(&mut rng)).collect();
+    let mut ret = vec![0.0f32; envs.len()];
+    let mut alive = vec![true; envs.len()];
+    for _ in 0..MAX_T {
+        let mut obs = Vec::new();
+        envs.iter().for_each(|e| e.obs(&mut rng, &mut obs));
+        let act = policy(&obs);
+        for (i, env) in envs.iter_mut().enumerate() {
+            if alive[i] {
+                let (r, term, _) = env.step(&act[i * ACT..(i + 1) * ACT]);
+                ret[i] += r;
+                alive[i] = !term;
+            }
+        }
+    }
+    ret.iter().sum::<f32>() / ret.len() as f32
+}
+
+/// Trains until the evaluation passes THRESHOLD; returns (iterations, return).
+fn train(critic: CriticKind, max_iters: usize) -> (usize, f32) {
+    let cfg = LearnerConfig {
+        critic,
+        actor_hidden: vec![64, 64],
+        critic_hidden: vec![64, 64],
+        ..LearnerConfig::default()
+    };
+    let (num_envs, steps) = (64, 24);
+    let mut learner = Learner::new(OBS, ACT, &cfg, 42).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut envs: Vec<PointMass> = (0..num_envs).map(|_| PointMass::new(&mut rng)).collect();
+    let mut rollout = Rollout::new(steps, num_envs, OBS, ACT);
+    let mut obs = Vec::new();
+    envs.iter().for_each(|e| e.obs(&mut rng, &mut obs));
+    let mut last = f32::NEG_INFINITY;
+    for it in 1..=max_iters {
+        rollout.clear();
+        for _ in 0..steps {
+            let out = learner.act(&obs, &mut rng);
+            let (mut rew, mut done, mut tout) = (vec![], vec![], vec![]);
+            let mut final_obs = vec![0.0; num_envs * OBS];
+            let mut next = Vec::with_capacity(num_envs * OBS);
+            for (i, env) in envs.iter_mut().enumerate() {
+                let (r, term, to) = env.step(&out.actions[i * ACT..(i + 1) * ACT]);
+                rew.push(r);
+                done.push(term || to);
+                tout.push(to && !term);
+                if term || to {
+                    let mut f = Vec::new();
+                    env.obs(&mut rng, &mut f);
+                    final_obs[i * OBS..(i + 1) * OBS].copy_from_slice(&f);
+                    *env = PointMass::new(&mut rng);
+                }
+                env.obs(&mut rng, &mut next);
+            }
+            rollout.push(&obs, &out, &rew, &done, &tout, &final_obs).unwrap();
+            obs = next;
+        }
+        rollout.set_last_obs(&obs).unwrap();
+        let stats = learner.update(&rollout).unwrap();
+        assert!(stats.policy_loss.is_finite() && stats.value_loss.is_finite());
+        if it % 5 == 0 {
+            last = evaluate(&learner);
+            if last > THRESHOLD {
+                return (it, last);
+            }
+        }
+    }
+    (max_iters, last)
+}
+
+#[test]
+fn random_policy_fails_the_threshold() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let random = evaluate_with(|obs| (0..obs.len() / OBS * ACT).map(|_| rng.gen_range(-1.0..1.0)).collect());
+    let learner = Learner::new(OBS, ACT, &LearnerConfig::default(), 42).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let initial = evaluate_with(|obs| learner.act(obs, &mut rng).actions);
+    assert!(random < THRESHOLD - 15.0, "random policy return {random}");
+    assert!(initial < THRESHOLD - 15.0, "initial policy return {initial}");
+}
+
+#[test]
+fn ppo_learns_with_iqn_cvar_critic() {
+    let (iters, ret) = train(CriticKind::Iqn, 100);
+    eprintln!("IQN (CVaR_0.5): return {ret} after {iters} iterations");
+    assert!(ret > THRESHOLD, "IQN critic: return {ret} after {iters} iterations");
+}
+
+#[test]
+fn ppo_learns_with_scalar_critic() {
+    let (iters, ret) = train(CriticKind::Scalar, 100);
+    eprintln!("scalar: return {ret} after {iters} iterations");
+    assert!(ret > THRESHOLD, "scalar critic: return {ret} after {iters} iterations");
+}
