@@ -6,6 +6,8 @@
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 
 #[cfg(feature = "sim")]
+pub mod env;
+#[cfg(feature = "sim")]
 pub mod robot;
 #[cfg(feature = "sim")]
 pub mod sim;

@@ -96,7 +96,13 @@ impl Warnings {
     pub fn describe_since(&self, before: &Warnings) -> String {
         let parts: Vec<String> = (0..self.counts.len())
             .filter(|&i| self.counts[i] > before.counts[i])
-            .map(|i| format!("{} x{}", WARNING_NAMES[i], self.counts[i] - before.counts[i]))
+            .map(|i| {
+                format!(
+                    "{} x{}",
+                    WARNING_NAMES[i],
+                    self.counts[i] - before.counts[i]
+                )
+            })
             .collect();
         if parts.is_empty() {
             "none".into()
@@ -129,7 +135,8 @@ impl Data {
         // SAFETY: valid model.
         let raw = unsafe { ffi::mj_makeData(model.raw()) };
         check_error()?;
-        let ptr = NonNull::new(raw).ok_or_else(|| SimError::MuJoCo("mj_makeData returned null".into()))?;
+        let ptr = NonNull::new(raw)
+            .ok_or_else(|| SimError::MuJoCo("mj_makeData returned null".into()))?;
         let mut data = Data {
             ptr,
             shape: Shape::of(model),
@@ -144,7 +151,10 @@ impl Data {
         if other == self.shape {
             Ok(())
         } else {
-            Err(SimError::ModelMismatch(format!("data {:?} vs model {:?}", self.shape, other)))
+            Err(SimError::ModelMismatch(format!(
+                "data {:?} vs model {:?}",
+                self.shape, other
+            )))
         }
     }
 
@@ -252,11 +262,17 @@ impl Data {
         self.reals(self.d().qfrc_actuator, self.shape.nv)
     }
     /// Cartesian force/torque applied to each body (world frame, at the body's
-    /// origin... as MuJoCo defines it: at the body's centre of mass): [fx fy fz tx ty tz].
+    /// centre of mass, as MuJoCo defines it): [fx fy fz tx ty tz].
     pub fn xfrc_applied_mut(&mut self) -> &mut [[f64; 6]] {
         let n = self.shape.nbody as usize;
         // SAFETY: xfrc_applied holds 6*nbody reals.
         unsafe { std::slice::from_raw_parts_mut(self.d().xfrc_applied as *mut [f64; 6], n) }
+    }
+    /// Cartesian force/torque applied to each body, read-only.
+    pub fn xfrc_applied(&self) -> &[[f64; 6]] {
+        let n = self.shape.nbody as usize;
+        // SAFETY: xfrc_applied holds 6*nbody reals.
+        unsafe { std::slice::from_raw_parts(self.d().xfrc_applied as *const [f64; 6], n) }
     }
     /// Body origin positions (world, m).
     pub fn xpos(&self) -> &[[f64; 3]] {
@@ -306,7 +322,10 @@ impl Data {
     pub fn contact_force(&self, model: &Model, index: usize) -> Result<[f64; 6]> {
         self.check_model(model)?;
         if index >= self.ncon() {
-            return Err(SimError::Invalid(format!("contact {index} of {}", self.ncon())));
+            return Err(SimError::Invalid(format!(
+                "contact {index} of {}",
+                self.ncon()
+            )));
         }
         let mut out = [0.0; 6];
         // SAFETY: matching model and data, index < ncon.

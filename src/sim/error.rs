@@ -13,7 +13,10 @@ pub enum SimError {
     #[error("model file {path} does not exist or is unreadable: {reason}")]
     ModelFile { path: PathBuf, reason: String },
     #[error("MuJoCo could not load {source_name}: {message}")]
-    Load { source_name: String, message: String },
+    Load {
+        source_name: String,
+        message: String,
+    },
     #[error("MuJoCo error: {0}")]
     MuJoCo(String),
     #[error("{kind} named {name:?} not found in the model")]
@@ -50,7 +53,10 @@ unsafe fn message_text(msg: *const c_char) -> String {
         return "(no message)".into();
     }
     // SAFETY: MuJoCo passes a NUL-terminated string valid for the call.
-    unsafe { CStr::from_ptr(msg) }.to_string_lossy().trim().to_string()
+    unsafe { CStr::from_ptr(msg) }
+        .to_string_lossy()
+        .trim()
+        .to_string()
 }
 
 /// Installs the handlers once per process, before the first MuJoCo call.

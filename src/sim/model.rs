@@ -108,10 +108,11 @@ impl Model {
                 reason: e.to_string(),
             });
         }
-        let c_path = CString::new(path.to_string_lossy().as_bytes()).map_err(|_| SimError::ModelFile {
-            path: path.to_path_buf(),
-            reason: "path contains a NUL byte".into(),
-        })?;
+        let c_path =
+            CString::new(path.to_string_lossy().as_bytes()).map_err(|_| SimError::ModelFile {
+                path: path.to_path_buf(),
+                reason: "path contains a NUL byte".into(),
+            })?;
         load(&c_path, None, &path.display().to_string())
     }
 
@@ -230,6 +231,26 @@ impl Model {
         let n = self.nbody();
         self.reals_mut(self.m().body_mass, n)
     }
+    /// Sets a body's mass (kg), keeping the subtree masses of it and its
+    /// ancestors consistent (what `mj_setConst` would recompute). Inertia is kept.
+    pub fn set_body_mass_kg(&mut self, body: usize, mass_kg: f64) {
+        let n = self.nbody();
+        let delta = mass_kg - self.body_mass_kg()[body];
+        self.body_mass_kg_mut()[body] = mass_kg;
+        let mut b = body;
+        loop {
+            let parent = self.body_parent(b);
+            self.reals_mut(self.m().body_subtreemass, n)[b] += delta;
+            if b == 0 {
+                break;
+            }
+            b = parent;
+        }
+    }
+    /// Mass of each body's subtree (kg).
+    pub fn body_subtree_mass_kg(&self) -> &[f64] {
+        self.reals(self.m().body_subtreemass, self.nbody())
+    }
     /// Diagonal inertia in the body's inertial frame (kg m^2).
     pub fn body_inertia(&self) -> &[[f64; 3]] {
         self.vec3s(self.m().body_inertia, self.nbody())
@@ -322,7 +343,10 @@ impl Model {
     /// Collision bits (contype, conaffinity).
     pub fn geom_collision_bits(&self, geom: usize) -> (i32, i32) {
         let n = self.ngeom();
-        (self.ints(self.m().geom_contype, n)[geom], self.ints(self.m().geom_conaffinity, n)[geom])
+        (
+            self.ints(self.m().geom_contype, n)[geom],
+            self.ints(self.m().geom_conaffinity, n)[geom],
+        )
     }
     /// The heightfield a geom uses, if it is an hfield geom.
     pub fn geom_hfield(&self, geom: usize) -> Option<usize> {
@@ -342,7 +366,8 @@ impl Model {
     pub fn hfield_size(&self, h: usize) -> [f64; 4] {
         let n = self.nhfield();
         // SAFETY: hfield_size holds 4*nhfield reals.
-        let all: &[[f64; 4]] = unsafe { std::slice::from_raw_parts(self.m().hfield_size as *const [f64; 4], n) };
+        let all: &[[f64; 4]] =
+            unsafe { std::slice::from_raw_parts(self.m().hfield_size as *const [f64; 4], n) };
         all[h]
     }
     /// Row-major elevation samples of heightfield `h`, each in [0, 1] of `elevation_z`.
@@ -424,23 +449,40 @@ fn load(file: &CStr, vfs: Option<&Vfs>, name: &str) -> Result<Model> {
     let mut err = [0 as c_char; LOAD_ERROR_LEN];
     let vfs_ptr = vfs.map_or(std::ptr::null(), |v| v.raw());
     // SAFETY: valid C strings and an error buffer of the declared length.
-    let raw = unsafe { ffi::mj_loadXML(file.as_ptr(), vfs_ptr, err.as_mut_ptr(), LOAD_ERROR_LEN as i32) };
+    let raw = unsafe {
+        ffi::mj_loadXML(
+            file.as_ptr(),
+            vfs_ptr,
+            err.as_mut_ptr(),
+            LOAD_ERROR_LEN as i32,
+        )
+    };
     // SAFETY: MuJoCo NUL-terminates the error buffer.
-    let message = unsafe { CStr::from_ptr(err.as_ptr()) }.to_string_lossy().trim().to_string();
+    let message = unsafe { CStr::from_ptr(err.as_ptr()) }
+        .to_string_lossy()
+        .trim()
+        .to_string();
     let handler_error = super::error::take_error();
     match NonNull::new(raw) {
         Some(ptr) => {
             if let Some(e) = handler_error {
                 drop(Model { ptr });
-                return Err(SimError::Load { source_name: name.into(), message: e });
+                return Err(SimError::Load {
+                    source_name: name.into(),
+                    message: e,
+                });
             }
             Ok(Model { ptr })
         }
         None => Err(SimError::Load {
             source_name: name.into(),
-            message: handler_error
-                .filter(|_| message.is_empty())
-                .unwrap_or(if message.is_empty() { "unknown error".into() } else { message }),
+            message: handler_error.filter(|_| message.is_empty()).unwrap_or(
+                if message.is_empty() {
+                    "unknown error".into()
+                } else {
+                    message
+                },
+            ),
         }),
     }
 }
@@ -460,7 +502,9 @@ impl Vfs {
         // SAFETY: valid VFS and name; MuJoCo allocates `size` bytes.
         let rc = unsafe { ffi::mj_makeEmptyFileVFS(&mut *raw, name.as_ptr(), size) };
         if rc != 0 {
-            return Err(SimError::Invalid(format!("MuJoCo VFS refused the file (code {rc})")));
+            return Err(SimError::Invalid(format!(
+                "MuJoCo VFS refused the file (code {rc})"
+            )));
         }
         let index = unsafe { ffi::mj_findFileVFS(&*raw, name.as_ptr()) };
         if index < 0 {

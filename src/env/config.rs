@@ -1,0 +1,419 @@
+//! Task configuration as data: observation, reward, risk, commands, episodes,
+//! randomisation. Defaults are the RALL paper's (tables I-III) and legged_gym's.
+
+use serde::{Deserialize, Serialize};
+
+/// One scalar per observation group (legged_gym's grouping).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObsGroups {
+    pub lin_vel: f64,
+    pub ang_vel: f64,
+    pub gravity: f64,
+    pub dof_pos: f64,
+    pub dof_vel: f64,
+}
+
+/// Observation scales and noise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ObservationConfig {
+    /// Multipliers applied to each group (commands use `command_scale`, actions 1).
+    pub scales: ObsGroups,
+    /// Scale of (vx, vy, yaw rate) in the command slot.
+    pub command_scale: [f64; 3],
+    /// Gaussian noise std per group, in physical units (m/s, rad/s, -, rad, rad/s);
+    /// added after scaling as std * scale. Commands and actions get none.
+    pub noise_std: ObsGroups,
+    /// Global multiplier of all noise (0 disables it).
+    pub noise_level: f64,
+    /// Observations are clipped to +-clip after scaling.
+    pub clip: f64,
+}
+
+impl Default for ObservationConfig {
+    fn default() -> Self {
+        ObservationConfig {
+            scales: ObsGroups {
+                lin_vel: 2.0,
+                ang_vel: 0.25,
+                gravity: 1.0,
+                dof_pos: 1.0,
+                dof_vel: 0.05,
+            },
+            command_scale: [2.0, 2.0, 0.25],
+            noise_std: ObsGroups {
+                lin_vel: 0.1,
+                ang_vel: 0.2,
+                gravity: 0.05,
+                dof_pos: 0.01,
+                dof_vel: 1.5,
+            },
+            noise_level: 1.0,
+            clip: 100.0,
+        }
+    }
+}
+
+/// Weights of the task reward terms (paper table I); each term is multiplied by
+/// its weight and by the policy dt.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RewardConfig {
+    pub lin_vel_tracking: f64,
+    pub ang_vel_tracking: f64,
+    pub lin_vel_z: f64,
+    pub ang_vel_xy: f64,
+    pub joint_acc: f64,
+    pub torques: f64,
+    pub action_magnitude: f64,
+    pub collision: f64,
+    pub action_rate: f64,
+    pub torque_rate: f64,
+    pub feet_air_time: f64,
+    /// sigma of exp(-err^2 / sigma) ((m/s)^2 and (rad/s)^2).
+    pub tracking_sigma: f64,
+    /// Air time (s) that pays zero in the feet-air-time term.
+    pub feet_air_time_target_s: f64,
+    /// Clip the summed task reward at 0 from below (legged_gym); risk penalties
+    /// are applied after the clip so they are never hidden by it.
+    pub only_positive_task_reward: bool,
+}
+
+impl Default for RewardConfig {
+    fn default() -> Self {
+        RewardConfig {
+            lin_vel_tracking: 5.0,
+            ang_vel_tracking: 0.5,
+            lin_vel_z: -1.0,
+            ang_vel_xy: -0.05,
+            joint_acc: -2.5e-7,
+            torques: -2e-5,
+            action_magnitude: -0.01,
+            collision: -1e-3,
+            action_rate: -0.01,
+            torque_rate: -3e-4,
+            feet_air_time: 2.0,
+            tracking_sigma: 0.25,
+            feet_air_time_target_s: 0.5,
+            only_positive_task_reward: true,
+        }
+    }
+}
+
+/// One risk term: past `threshold`, `weight` is subtracted with probability p.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RiskTerm {
+    pub threshold: f64,
+    pub weight: f64,
+}
+
+/// Risk penalties (paper table II and eq. 2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RiskConfig {
+    /// Bernoulli probability that an exceeded threshold is penalised.
+    pub probability: f64,
+    /// |pitch| (rad).
+    pub base_pitch: RiskTerm,
+    /// |roll| (rad).
+    pub base_roll: RiskTerm,
+    /// max |joint velocity| (rad/s).
+    pub joint_velocity: RiskTerm,
+    /// max |joint acceleration| (rad/s^2), finite difference over the policy step.
+    pub joint_acceleration: RiskTerm,
+    /// max |joint torque| (N m).
+    pub joint_torque: RiskTerm,
+}
+
+impl Default for RiskConfig {
+    fn default() -> Self {
+        RiskConfig {
+            probability: 1e-4,
+            base_pitch: RiskTerm {
+                threshold: 0.5,
+                weight: 20.0,
+            },
+            base_roll: RiskTerm {
+                threshold: 1.0,
+                weight: 100.0,
+            },
+            joint_velocity: RiskTerm {
+                threshold: 10.0,
+                weight: 100.0,
+            },
+            joint_acceleration: RiskTerm {
+                threshold: 1000.0,
+                weight: 100.0,
+            },
+            joint_torque: RiskTerm {
+                threshold: 40.0,
+                weight: 150.0,
+            },
+        }
+    }
+}
+
+impl RiskConfig {
+    /// The terms in a fixed order (names for logs).
+    pub fn terms(&self) -> [(&'static str, RiskTerm); 5] {
+        [
+            ("base_pitch", self.base_pitch),
+            ("base_roll", self.base_roll),
+            ("joint_velocity", self.joint_velocity),
+            ("joint_acceleration", self.joint_acceleration),
+            ("joint_torque", self.joint_torque),
+        ]
+    }
+}
+
+/// Velocity command sampling (legged_gym defaults).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CommandConfig {
+    pub vx_mps: [f64; 2],
+    pub vy_mps: [f64; 2],
+    pub yaw_rate_rad_s: [f64; 2],
+    pub resample_interval_s: f64,
+    /// Planar commands with norm below this are zeroed (m/s).
+    pub zero_below_mps: f64,
+}
+
+impl Default for CommandConfig {
+    fn default() -> Self {
+        CommandConfig {
+            vx_mps: [-1.0, 1.0],
+            vy_mps: [-1.0, 1.0],
+            yaw_rate_rad_s: [-1.0, 1.0],
+            resample_interval_s: 10.0,
+            zero_below_mps: 0.2,
+        }
+    }
+}
+
+/// Episode length and termination.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EpisodeConfig {
+    pub length_s: f64,
+    /// Terminate when roll or pitch exceeds this (rad).
+    pub max_tilt_rad: f64,
+    /// Terminate when the trunk touches the ground.
+    pub terminate_on_trunk_contact: bool,
+    /// Start training with random episode progress (legged_gym), so resets spread out.
+    pub randomize_initial_length: bool,
+}
+
+impl Default for EpisodeConfig {
+    fn default() -> Self {
+        EpisodeConfig {
+            length_s: 20.0,
+            max_tilt_rad: 1.2,
+            terminate_on_trunk_contact: true,
+            randomize_initial_length: true,
+        }
+    }
+}
+
+/// How pushes disturb the robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
+pub enum PushConfig {
+    None,
+    /// Add U[-max, max] m/s to the base x and y velocity every `interval_s` (paper table III).
+    VelocityKick {
+        interval_s: f64,
+        max_mps: f64,
+    },
+    /// Apply `force_n` on the trunk along a random +-x or +-y direction every
+    /// `every_steps` policy steps, held for `hold_steps` (paper's evaluation pushes).
+    Force {
+        force_n: f64,
+        every_steps: usize,
+        hold_steps: usize,
+    },
+}
+
+/// Domain randomisation, sampled per episode (paper table III).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RandomizationConfig {
+    /// Friction coefficient of every geom, U[lo, hi]; `None` keeps the model's.
+    pub friction: Option<[f64; 2]>,
+    /// Mass added to the trunk (kg), U[lo, hi]; `None` keeps the model's.
+    pub added_base_mass_kg: Option<[f64; 2]>,
+    pub push: PushConfig,
+}
+
+impl Default for RandomizationConfig {
+    fn default() -> Self {
+        RandomizationConfig {
+            friction: Some([0.5, 1.5]),
+            added_base_mass_kg: Some([-0.5, 1.0]),
+            push: PushConfig::VelocityKick {
+                interval_s: 5.0,
+                max_mps: 1.0,
+            },
+        }
+    }
+}
+
+/// Everything one environment needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EnvConfig {
+    /// Robot MJCF (robot only; the scene is added from `terrain`).
+    pub robot_mjcf: String,
+    pub control: crate::robot::ControlConfig,
+    pub observation: ObservationConfig,
+    pub reward: RewardConfig,
+    pub risk: RiskConfig,
+    pub commands: CommandConfig,
+    pub episode: EpisodeConfig,
+    pub randomization: RandomizationConfig,
+    pub terrain: super::terrain::TerrainConfig,
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        EnvConfig {
+            robot_mjcf: "mjcf/aliengo.xml".into(),
+            control: Default::default(),
+            observation: Default::default(),
+            reward: Default::default(),
+            risk: Default::default(),
+            commands: Default::default(),
+            episode: Default::default(),
+            randomization: Default::default(),
+            terrain: Default::default(),
+        }
+    }
+}
+
+fn check(ok: bool, key: &str, what: impl std::fmt::Display) -> Result<(), String> {
+    if ok {
+        Ok(())
+    } else {
+        Err(format!("{key}: {what}"))
+    }
+}
+
+fn check_range(r: [f64; 2], key: &str) -> Result<(), String> {
+    check(
+        r[0].is_finite() && r[1].is_finite() && r[0] <= r[1],
+        key,
+        format!("must be [lo, hi] with lo <= hi, got {r:?}"),
+    )
+}
+
+impl EnvConfig {
+    /// Refuses impossible values with a message naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        self.control.validate()?;
+        let o = &self.observation;
+        for (k, v) in [
+            ("observation.noise_std.lin_vel", o.noise_std.lin_vel),
+            ("observation.noise_std.ang_vel", o.noise_std.ang_vel),
+            ("observation.noise_std.gravity", o.noise_std.gravity),
+            ("observation.noise_std.dof_pos", o.noise_std.dof_pos),
+            ("observation.noise_std.dof_vel", o.noise_std.dof_vel),
+            ("observation.noise_level", o.noise_level),
+        ] {
+            check(
+                v.is_finite() && v >= 0.0,
+                k,
+                format!("must be >= 0, got {v}"),
+            )?;
+        }
+        check(o.clip > 0.0, "observation.clip", "must be positive")?;
+        check(
+            self.reward.tracking_sigma > 0.0,
+            "reward.tracking_sigma",
+            "must be positive",
+        )?;
+        let p = self.risk.probability;
+        check(
+            (0.0..=1.0).contains(&p),
+            "risk.probability",
+            format!("must be in [0, 1], got {p}"),
+        )?;
+        for (name, t) in self.risk.terms() {
+            check(
+                t.threshold.is_finite() && t.threshold >= 0.0,
+                &format!("risk.{name}.threshold"),
+                "must be >= 0",
+            )?;
+            check(
+                t.weight.is_finite() && t.weight >= 0.0,
+                &format!("risk.{name}.weight"),
+                "must be >= 0 (it is subtracted)",
+            )?;
+        }
+        let c = &self.commands;
+        check_range(c.vx_mps, "commands.vx_mps")?;
+        check_range(c.vy_mps, "commands.vy_mps")?;
+        check_range(c.yaw_rate_rad_s, "commands.yaw_rate_rad_s")?;
+        check(
+            c.resample_interval_s > 0.0,
+            "commands.resample_interval_s",
+            "must be positive",
+        )?;
+        check(
+            self.episode.length_s > 0.0,
+            "episode.length_s",
+            "must be positive",
+        )?;
+        check(
+            self.episode.max_tilt_rad > 0.0,
+            "episode.max_tilt_rad",
+            "must be positive",
+        )?;
+        let r = &self.randomization;
+        if let Some(f) = r.friction {
+            check_range(f, "randomization.friction")?;
+            check(f[0] >= 0.0, "randomization.friction", "must be >= 0")?;
+        }
+        if let Some(m) = r.added_base_mass_kg {
+            check_range(m, "randomization.added_base_mass_kg")?;
+        }
+        match r.push {
+            PushConfig::None => {}
+            PushConfig::VelocityKick {
+                interval_s,
+                max_mps,
+            } => {
+                check(
+                    interval_s > 0.0,
+                    "randomization.push.interval_s",
+                    "must be positive",
+                )?;
+                check(max_mps >= 0.0, "randomization.push.max_mps", "must be >= 0")?;
+            }
+            PushConfig::Force {
+                force_n,
+                every_steps,
+                hold_steps,
+            } => {
+                check(force_n >= 0.0, "randomization.push.force_n", "must be >= 0")?;
+                check(
+                    every_steps > 0,
+                    "randomization.push.every_steps",
+                    "must be positive",
+                )?;
+                check(
+                    hold_steps <= every_steps,
+                    "randomization.push.hold_steps",
+                    "must be <= every_steps",
+                )?;
+            }
+        }
+        self.terrain.validate()?;
+        Ok(())
+    }
+
+    /// Policy steps per episode.
+    pub fn max_episode_steps(&self) -> usize {
+        (self.episode.length_s / self.control.policy_dt_s()).round() as usize
+    }
+}

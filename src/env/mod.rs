@@ -1,0 +1,23 @@
+//! The environment layer: one robot ([`Env`]) and N in parallel ([`VecEnv`]).
+//!
+//! - `config`: the task as data (TOML), validated with the offending key named.
+//! - `state`: a plain snapshot of the robot per policy step.
+//! - `observation`, `reward`, `risk`: pure functions of that snapshot.
+//! - `terrain`: heightfield tiles and the curriculum.
+//! - `single`, `vec_env`: reset + step.
+
+pub mod config;
+pub mod observation;
+pub mod reward;
+pub mod risk;
+mod scene;
+mod single;
+pub mod state;
+pub mod terrain;
+mod vec_env;
+
+pub use config::EnvConfig;
+pub use observation::{ACT_DIM, OBS_DIM, OBS_LAYOUT};
+pub use scene::{build_scene, Scene};
+pub use single::{Env, EpisodeDraw, EpisodeEnd, EpisodeSummary, ForcePush, StepResult};
+pub use vec_env::{Batch, VecEnv};

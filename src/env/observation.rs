@@ -1,0 +1,100 @@
+//! The 48-float proprioceptive observation (legged_gym layout and scales).
+
+use rand::Rng;
+use rand_distr::StandardNormal;
+
+use super::config::ObservationConfig;
+use super::state::RobotState;
+use crate::robot::NUM_JOINTS;
+
+/// Observation length.
+pub const OBS_DIM: usize = 48;
+/// Action length.
+pub const ACT_DIM: usize = NUM_JOINTS;
+
+/// (name, length) of each observation group, in order. Saved in checkpoints so a
+/// policy is never run on a differently laid out observation.
+pub const OBS_LAYOUT: [(&str, usize); 7] = [
+    ("base_lin_vel_body", 3),
+    ("base_ang_vel_body", 3),
+    ("gravity_body", 3),
+    ("command_vx_vy_yaw", 3),
+    ("joint_pos_minus_default", 12),
+    ("joint_vel", 12),
+    ("previous_action", 12),
+];
+
+/// The layout as one string, e.g. for checkpoint metadata.
+pub fn layout_string() -> String {
+    OBS_LAYOUT
+        .iter()
+        .map(|(n, k)| format!("{n}:{k}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// Writes the observation into `out` (length [`OBS_DIM`]). Noise (Gaussian, std
+/// per group in physical units times the group's scale) is drawn from `rng`
+/// when given; commands and actions are never noised.
+pub fn write_observation<R: Rng>(
+    state: &RobotState,
+    command: &[f64; 3],
+    previous_action: &[f32],
+    default_q_rad: &[f64; NUM_JOINTS],
+    cfg: &ObservationConfig,
+    mut rng: Option<&mut R>,
+    out: &mut [f32],
+) {
+    let s = &cfg.scales;
+    let n = &cfg.noise_std;
+    let level = cfg.noise_level;
+    let mut i = 0;
+    let mut put = |value: f64, scale: f64, noise_std: f64, rng: &mut Option<&mut R>| {
+        let mut v = value * scale;
+        if let Some(r) = rng.as_deref_mut() {
+            if noise_std > 0.0 && level > 0.0 {
+                let z: f64 = r.sample(StandardNormal);
+                v += z * noise_std * level * scale;
+            }
+        }
+        out[i] = v.clamp(-cfg.clip, cfg.clip) as f32;
+        i += 1;
+    };
+    for k in 0..3 {
+        put(
+            state.base_lin_vel_body_mps[k],
+            s.lin_vel,
+            n.lin_vel,
+            &mut rng,
+        );
+    }
+    for k in 0..3 {
+        put(
+            state.base_ang_vel_body_rad_s[k],
+            s.ang_vel,
+            n.ang_vel,
+            &mut rng,
+        );
+    }
+    for k in 0..3 {
+        put(state.gravity_body[k], s.gravity, n.gravity, &mut rng);
+    }
+    for k in 0..3 {
+        put(command[k], cfg.command_scale[k], 0.0, &mut rng);
+    }
+    for k in 0..NUM_JOINTS {
+        put(
+            state.q_rad[k] - default_q_rad[k],
+            s.dof_pos,
+            n.dof_pos,
+            &mut rng,
+        );
+    }
+    for k in 0..NUM_JOINTS {
+        put(state.qd_rad_s[k], s.dof_vel, n.dof_vel, &mut rng);
+    }
+    for k in 0..NUM_JOINTS {
+        put(previous_action[k] as f64, 1.0, 0.0, &mut rng);
+    }
+    debug_assert_eq!(i, OBS_DIM);
+}

@@ -1,0 +1,35 @@
+//! Builds the MuJoCo scene of a task: the robot MJCF plus the ground.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use super::config::EnvConfig;
+use super::terrain::{Terrain, TerrainKind};
+use crate::sim::{Model, Result, SimError};
+
+/// The loaded scene and, on rough ground, the terrain it was made from.
+pub struct Scene {
+    pub model: Model,
+    pub terrain: Option<Arc<Terrain>>,
+}
+
+/// Reads `cfg.robot_mjcf`, adds the ground (plane or heightfield from
+/// `cfg.terrain`, generated from `seed`) and loads it.
+pub fn build_scene(cfg: &EnvConfig, seed: u64) -> Result<Scene> {
+    let path = Path::new(&cfg.robot_mjcf);
+    let robot_xml = std::fs::read_to_string(path).map_err(|e| SimError::ModelFile {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    let terrain = Terrain::generate(&cfg.terrain, seed);
+    let scene_xml = terrain
+        .scene_xml(&robot_xml)
+        .map_err(|e| SimError::Invalid(format!("{}: {e}", path.display())))?;
+    let mut model = Model::from_xml_str(
+        &scene_xml,
+        &format!("{} + {:?} terrain", path.display(), cfg.terrain.kind),
+    )?;
+    terrain.upload(&mut model).map_err(SimError::Invalid)?;
+    let terrain = (cfg.terrain.kind != TerrainKind::Flat).then(|| Arc::new(terrain));
+    Ok(Scene { model, terrain })
+}

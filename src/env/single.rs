@@ -1,0 +1,563 @@
+//! [`Env`]: one robot. `reset` and `step(action)` over plain state; commands,
+//! randomisation and pushes are data sampled from the env's own RNG.
+
+use std::sync::Arc;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::config::{EnvConfig, PushConfig};
+use super::observation::{write_observation, ACT_DIM, OBS_DIM};
+use super::reward::{reward_terms, RewardInputs, NUM_REWARD_TERMS};
+use super::risk::{evaluate_risk, RiskOutcome, NUM_RISK_TERMS};
+use super::state::{roll_pitch_yaw, rotate_inverse, RobotState};
+use super::terrain::Terrain;
+use crate::robot::{Part, Robot, NUM_JOINTS};
+use crate::sim::{Model, Result};
+
+/// Domain randomisation drawn at the start of an episode.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpisodeDraw {
+    /// Friction coefficient given to every geom (`None`: the model's own).
+    pub friction: Option<f64>,
+    /// Mass added to the trunk (kg).
+    pub added_base_mass_kg: f64,
+}
+
+/// Why an episode ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EpisodeEnd {
+    TimeOut,
+    TrunkContact,
+    Tilt,
+    /// MuJoCo flagged a bad state (NaN, divergence); the env was reset.
+    Unstable,
+}
+
+/// Summary of a finished episode, for logging and the curriculum.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpisodeSummary {
+    pub env_index: usize,
+    pub steps: usize,
+    pub end: EpisodeEnd,
+    /// Sum over the episode of each weighted task reward term.
+    pub reward_terms: [f64; NUM_REWARD_TERMS],
+    /// Sum of the risk penalties subtracted.
+    pub risk_penalty: f64,
+    pub total_reward: f64,
+    pub risk_exceeded: [u32; NUM_RISK_TERMS],
+    pub risk_fired: [u32; NUM_RISK_TERMS],
+    /// Terrain level the episode ran on.
+    pub terrain_level: usize,
+    /// Horizontal distance from the spawn point (m).
+    pub distance_m: f64,
+    /// Integral of the commanded planar speed over the episode (m).
+    pub commanded_distance_m: f64,
+}
+
+/// What one policy step produced.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepResult {
+    pub reward: f64,
+    /// The episode ended (termination or time-out). `obs` then holds the final
+    /// observation too; call [`Env::reset`] before stepping again (VecEnv does).
+    pub done: bool,
+    /// The episode ended by time-out (the learner bootstraps from `final_obs`).
+    pub time_out: bool,
+    pub risk: RiskOutcome,
+    /// A push started this step.
+    pub pushed: bool,
+}
+
+/// An active force push (the evaluation scenario's 100 N pushes).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ForcePush {
+    /// World-frame force on the trunk (N).
+    pub force_n: [f64; 3],
+    pub steps_left: usize,
+}
+
+pub struct Env {
+    pub index: usize,
+    cfg: Arc<EnvConfig>,
+    robot: Robot,
+    terrain: Option<Arc<Terrain>>,
+    rng: ChaCha8Rng,
+    /// Friction of every geom in the unrandomised model.
+    base_friction: Vec<[f64; 3]>,
+    base_trunk_mass_kg: f64,
+    max_steps: usize,
+    // --- episode state ---
+    pub draw: EpisodeDraw,
+    command: [f64; 3],
+    action: [f32; ACT_DIM],
+    previous_action: [f32; ACT_DIM],
+    previous_torques_nm: [f64; NUM_JOINTS],
+    state: RobotState,
+    feet_air_time_s: [f64; 4],
+    step_in_episode: usize,
+    spawn_xy_m: [f64; 2],
+    pub terrain_level: usize,
+    pub terrain_type: usize,
+    force_push: ForcePush,
+    commanded_distance_m: f64,
+    sums: EpisodeSummary,
+    /// Physics failures since creation.
+    pub instabilities: u64,
+    last_summary: Option<EpisodeSummary>,
+    /// What the last `step` returned (read by `VecEnv` for batch counters).
+    pub last_step: StepResult,
+}
+
+impl Env {
+    /// Builds env `index` from its own copy of `base_model` (randomisation never
+    /// leaks between envs). `seed` and `index` fix its random stream.
+    pub fn new(
+        cfg: Arc<EnvConfig>,
+        base_model: &Model,
+        terrain: Option<Arc<Terrain>>,
+        seed: u64,
+        index: usize,
+    ) -> Result<Env> {
+        let model = base_model.try_clone()?;
+        let robot = Robot::new(model, cfg.control.clone())?;
+        let base_friction = robot.model.geom_friction().to_vec();
+        let base_trunk_mass_kg = robot.model.body_mass_kg()[robot.layout.trunk_body];
+        let max_steps = cfg.max_episode_steps();
+        let rng =
+            ChaCha8Rng::seed_from_u64(seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let env = Env {
+            index,
+            cfg,
+            robot,
+            terrain,
+            rng,
+            base_friction,
+            base_trunk_mass_kg,
+            max_steps,
+            draw: EpisodeDraw {
+                friction: None,
+                added_base_mass_kg: 0.0,
+            },
+            command: [0.0; 3],
+            action: [0.0; ACT_DIM],
+            previous_action: [0.0; ACT_DIM],
+            previous_torques_nm: [0.0; NUM_JOINTS],
+            state: RobotState::default(),
+            feet_air_time_s: [0.0; 4],
+            step_in_episode: 0,
+            spawn_xy_m: [0.0; 2],
+            terrain_level: 0,
+            terrain_type: 0,
+            force_push: ForcePush::default(),
+            commanded_distance_m: 0.0,
+            sums: empty_summary(index),
+            instabilities: 0,
+            last_summary: None,
+            last_step: StepResult::default(),
+        };
+        Ok(env)
+    }
+
+    /// The summary of the episode that ended in the last `step`, once.
+    pub fn take_summary(&mut self) -> Option<EpisodeSummary> {
+        self.last_summary.take()
+    }
+
+    pub fn config(&self) -> &EnvConfig {
+        &self.cfg
+    }
+    pub fn robot(&self) -> &Robot {
+        &self.robot
+    }
+    /// Mutable access for scenarios (payload joints, external forces).
+    pub fn robot_mut(&mut self) -> &mut Robot {
+        &mut self.robot
+    }
+    pub fn command(&self) -> [f64; 3] {
+        self.command
+    }
+    /// Overrides the command (eval scenarios, the viewer).
+    pub fn set_command(&mut self, command: [f64; 3]) {
+        self.command = command;
+    }
+    pub fn state(&self) -> &RobotState {
+        &self.state
+    }
+    pub fn step_in_episode(&self) -> usize {
+        self.step_in_episode
+    }
+    pub fn max_steps(&self) -> usize {
+        self.max_steps
+    }
+    pub fn force_push(&self) -> ForcePush {
+        self.force_push
+    }
+    /// Sets the step counter (legged_gym spreads initial resets this way).
+    pub fn set_step_in_episode(&mut self, step: usize) {
+        self.step_in_episode = step.min(self.max_steps.saturating_sub(1));
+    }
+    /// A uniform random episode progress for the first episode of training.
+    pub fn randomize_episode_progress(&mut self) {
+        let s = self.rng.gen_range(0..self.max_steps);
+        self.set_step_in_episode(s);
+    }
+
+    /// Starts a new episode and writes its first observation.
+    pub fn reset(&mut self, obs: &mut [f32]) -> Result<()> {
+        self.apply_randomization();
+        self.robot.reset_to_default()?;
+        self.place_at_spawn()?;
+        self.command = self.sample_command();
+        self.action = [0.0; ACT_DIM];
+        self.previous_action = [0.0; ACT_DIM];
+        self.previous_torques_nm = [0.0; NUM_JOINTS];
+        self.feet_air_time_s = [0.0; 4];
+        self.step_in_episode = 0;
+        self.force_push = ForcePush::default();
+        self.commanded_distance_m = 0.0;
+        self.sums = empty_summary(self.index);
+        self.sums.terrain_level = self.terrain_level;
+        let qd = self.robot.layout.joint_vel(self.robot.data.qvel());
+        self.state = self.measure(&qd, &[0.0; NUM_JOINTS]);
+        self.observe(obs);
+        Ok(())
+    }
+
+    /// Draws this episode's friction and base mass and writes them into the model.
+    fn apply_randomization(&mut self) {
+        let r = &self.cfg.randomization;
+        let friction = r.friction.map(|[lo, hi]| self.rng.gen_range(lo..=hi));
+        let added = r
+            .added_base_mass_kg
+            .map_or(0.0, |[lo, hi]| self.rng.gen_range(lo..=hi));
+        self.draw = EpisodeDraw {
+            friction,
+            added_base_mass_kg: added,
+        };
+        let model = &mut self.robot.model;
+        for (g, base) in model
+            .geom_friction_mut()
+            .iter_mut()
+            .zip(&self.base_friction)
+        {
+            *g = [friction.unwrap_or(base[0]), base[1], base[2]];
+        }
+        let trunk = self.robot.layout.trunk_body;
+        model.set_body_mass_kg(trunk, self.base_trunk_mass_kg + added);
+    }
+
+    /// Puts the env on terrain tile (level, type) for its next episode.
+    pub fn set_terrain_cell(&mut self, level: usize, terrain_type: usize) {
+        self.terrain_level = level;
+        self.terrain_type = terrain_type;
+    }
+
+    /// Moves the robot to its spawn point (terrain tile centre or the origin).
+    fn place_at_spawn(&mut self) -> Result<()> {
+        let origin = match &self.terrain {
+            Some(t) => t.tile_origin(self.terrain_level, self.terrain_type),
+            None => [0.0, 0.0, 0.0],
+        };
+        let a = self.robot.layout.root_qpos_adr;
+        let qpos = self.robot.data.qpos_mut();
+        qpos[a] += origin[0];
+        qpos[a + 1] += origin[1];
+        qpos[a + 2] += origin[2];
+        self.spawn_xy_m = [qpos[a], qpos[a + 1]];
+        self.robot.data.forward(&self.robot.model)
+    }
+
+    fn sample_command(&mut self) -> [f64; 3] {
+        let c = &self.cfg.commands;
+        let mut cmd = [
+            self.rng.gen_range(c.vx_mps[0]..=c.vx_mps[1]),
+            self.rng.gen_range(c.vy_mps[0]..=c.vy_mps[1]),
+            self.rng
+                .gen_range(c.yaw_rate_rad_s[0]..=c.yaw_rate_rad_s[1]),
+        ];
+        if (cmd[0] * cmd[0] + cmd[1] * cmd[1]).sqrt() < c.zero_below_mps {
+            cmd[0] = 0.0;
+            cmd[1] = 0.0;
+        }
+        cmd
+    }
+
+    /// One policy step. On an episode end `final_obs` (and `obs`) hold the last
+    /// observation of the finished episode and the caller must [`Env::reset`].
+    /// Physics failures end the episode (counted), never panic.
+    pub fn step(&mut self, action: &[f32], obs: &mut [f32], final_obs: &mut [f32]) -> StepResult {
+        debug_assert_eq!(action.len(), ACT_DIM);
+        self.previous_action = self.action;
+        self.action.copy_from_slice(action);
+        let pushed = self.apply_pushes();
+        let qd_before = self.robot.layout.joint_vel(self.robot.data.qvel());
+        let mut result = StepResult {
+            pushed,
+            ..Default::default()
+        };
+        let torques = match self.robot.policy_step(&self.action) {
+            Ok(t) => t,
+            Err(_) => {
+                self.instabilities += 1;
+                return self.finish(EpisodeEnd::Unstable, result, obs, final_obs);
+            }
+        };
+        self.step_in_episode += 1;
+        self.state = self.measure(&qd_before, &torques);
+        let dt = self.cfg.control.policy_dt_s();
+        self.commanded_distance_m += self.command[0].hypot(self.command[1]) * dt;
+        let touchdown = self.update_feet_air_time(dt);
+        let terms = reward_terms(
+            &RewardInputs {
+                state: &self.state,
+                previous_torques_nm: &self.previous_torques_nm,
+                action: &self.action,
+                previous_action: &self.previous_action,
+                command: &self.command,
+                touchdown_air_time_s: &touchdown,
+            },
+            &self.cfg.reward,
+            dt,
+        );
+        self.previous_torques_nm = torques;
+        let mut task = terms.sum();
+        if self.cfg.reward.only_positive_task_reward {
+            task = task.max(0.0);
+        }
+        let risk = evaluate_risk(&self.state, &self.cfg.risk, &mut self.rng);
+        result.risk = risk;
+        result.reward = task - risk.penalty;
+        self.accumulate(&terms.0, &risk, result.reward);
+        self.maybe_resample_command();
+        if let Some(end) = self.termination() {
+            return self.finish(end, result, obs, final_obs);
+        }
+        self.observe(obs);
+        result
+    }
+
+    fn accumulate(&mut self, terms: &[f64; NUM_REWARD_TERMS], risk: &RiskOutcome, reward: f64) {
+        for (s, t) in self.sums.reward_terms.iter_mut().zip(terms) {
+            *s += t;
+        }
+        for i in 0..NUM_RISK_TERMS {
+            self.sums.risk_exceeded[i] += risk.exceeded[i] as u32;
+            self.sums.risk_fired[i] += risk.fired[i] as u32;
+        }
+        self.sums.risk_penalty += risk.penalty;
+        self.sums.total_reward += reward;
+    }
+
+    fn termination(&self) -> Option<EpisodeEnd> {
+        let e = &self.cfg.episode;
+        if e.terminate_on_trunk_contact && self.state.trunk_on_ground {
+            Some(EpisodeEnd::TrunkContact)
+        } else if self.state.roll_rad.abs() > e.max_tilt_rad
+            || self.state.pitch_rad.abs() > e.max_tilt_rad
+        {
+            Some(EpisodeEnd::Tilt)
+        } else if self.step_in_episode >= self.max_steps {
+            Some(EpisodeEnd::TimeOut)
+        } else {
+            None
+        }
+    }
+
+    /// Ends the episode: records the summary and the true final observation.
+    /// The caller resets (VecEnv does, after updating the curriculum).
+    fn finish(
+        &mut self,
+        end: EpisodeEnd,
+        mut result: StepResult,
+        obs: &mut [f32],
+        final_obs: &mut [f32],
+    ) -> StepResult {
+        result.done = true;
+        result.time_out = end == EpisodeEnd::TimeOut;
+        if end == EpisodeEnd::Unstable {
+            final_obs.fill(0.0);
+        } else {
+            self.observe(final_obs);
+        }
+        let pos = self.robot.base_pos_m();
+        let distance =
+            ((pos[0] - self.spawn_xy_m[0]).powi(2) + (pos[1] - self.spawn_xy_m[1]).powi(2)).sqrt();
+        self.sums.steps = self.step_in_episode;
+        self.sums.end = end;
+        self.sums.distance_m = if distance.is_finite() { distance } else { 0.0 };
+        self.sums.commanded_distance_m = self.commanded_distance_m;
+        self.last_summary = Some(self.sums);
+        obs.copy_from_slice(final_obs);
+        result
+    }
+
+    fn apply_pushes(&mut self) -> bool {
+        let trunk = self.robot.layout.trunk_body;
+        match self.cfg.randomization.push {
+            PushConfig::None => false,
+            PushConfig::VelocityKick {
+                interval_s,
+                max_mps,
+            } => {
+                let every = (interval_s / self.cfg.control.policy_dt_s())
+                    .round()
+                    .max(1.0) as usize;
+                if self.step_in_episode > 0 && self.step_in_episode % every == 0 {
+                    self.random_kick(max_mps);
+                    true
+                } else {
+                    false
+                }
+            }
+            PushConfig::Force {
+                force_n,
+                every_steps,
+                hold_steps,
+            } => {
+                let start = self.step_in_episode > 0 && self.step_in_episode % every_steps == 0;
+                if start {
+                    let dir = self.rng.gen_range(0..4);
+                    let f = [
+                        [force_n, 0.0],
+                        [-force_n, 0.0],
+                        [0.0, force_n],
+                        [0.0, -force_n],
+                    ][dir];
+                    self.force_push = ForcePush {
+                        force_n: [f[0], f[1], 0.0],
+                        steps_left: hold_steps,
+                    };
+                }
+                let frc = &mut self.robot.data.xfrc_applied_mut()[trunk];
+                if self.force_push.steps_left > 0 {
+                    frc[..3].copy_from_slice(&self.force_push.force_n);
+                    self.force_push.steps_left -= 1;
+                } else {
+                    frc[..3].fill(0.0);
+                }
+                start
+            }
+        }
+    }
+
+    /// A push as in paper table III: adds U[-max, max] m/s to the base x and y
+    /// velocity; returns the change applied.
+    pub fn random_kick(&mut self, max_mps: f64) -> [f64; 2] {
+        let dv = [
+            self.rng.gen_range(-max_mps..=max_mps),
+            self.rng.gen_range(-max_mps..=max_mps),
+        ];
+        self.kick_base_velocity(dv);
+        dv
+    }
+
+    /// Adds `dv` (m/s, world x and y) to the base velocity.
+    pub fn kick_base_velocity(&mut self, dv_mps: [f64; 2]) {
+        let a = self.robot.layout.root_dof_adr;
+        let qvel = self.robot.data.qvel_mut();
+        qvel[a] += dv_mps[0];
+        qvel[a + 1] += dv_mps[1];
+    }
+
+    fn maybe_resample_command(&mut self) {
+        let every = (self.cfg.commands.resample_interval_s / self.cfg.control.policy_dt_s())
+            .round()
+            .max(1.0) as usize;
+        if self.step_in_episode % every == 0 {
+            self.command = self.sample_command();
+        }
+    }
+
+    /// Air time bookkeeping; returns each foot's air time at touchdown (0 if none).
+    fn update_feet_air_time(&mut self, dt: f64) -> [f64; 4] {
+        let mut touchdown = [0.0; 4];
+        for leg in 0..4 {
+            self.feet_air_time_s[leg] += dt;
+            if self.state.foot_contact[leg] {
+                if self.feet_air_time_s[leg] > dt {
+                    touchdown[leg] = self.feet_air_time_s[leg];
+                }
+                self.feet_air_time_s[leg] = 0.0;
+            }
+        }
+        touchdown
+    }
+
+    /// The plain state snapshot after a policy step.
+    fn measure(&self, qd_before: &[f64; NUM_JOINTS], torques: &[f64; NUM_JOINTS]) -> RobotState {
+        let r = &self.robot;
+        let quat = r.base_quat_wxyz();
+        let a = r.layout.root_dof_adr;
+        let qvel = r.data.qvel();
+        let v_world = [qvel[a], qvel[a + 1], qvel[a + 2]];
+        let [roll, pitch, _] = roll_pitch_yaw(quat);
+        let qd = r.layout.joint_vel(qvel);
+        let dt = self.cfg.control.policy_dt_s();
+        let mut s = RobotState {
+            base_lin_vel_body_mps: rotate_inverse(quat, v_world),
+            base_ang_vel_body_rad_s: [qvel[a + 3], qvel[a + 4], qvel[a + 5]],
+            gravity_body: rotate_inverse(quat, [0.0, 0.0, -1.0]),
+            roll_rad: roll,
+            pitch_rad: pitch,
+            q_rad: r.layout.joint_pos(r.data.qpos()),
+            qd_rad_s: qd,
+            qdd_rad_s2: std::array::from_fn(|i| (qd[i] - qd_before[i]) / dt),
+            torques_nm: *torques,
+            ..Default::default()
+        };
+        let mut penalised = [false; 64];
+        for c in r.data.contacts() {
+            for (g, other) in [(c.geom1, c.geom2), (c.geom2, c.geom1)] {
+                let other_is_robot = !matches!(r.layout.geom_parts[other], Part::Other);
+                if other_is_robot {
+                    continue;
+                }
+                match r.layout.geom_parts[g] {
+                    Part::Foot(leg) => s.foot_contact[leg] = true,
+                    Part::Trunk | Part::Thigh | Part::Calf => {
+                        if g < penalised.len() && !penalised[g] {
+                            penalised[g] = true;
+                            s.penalised_contacts += 1;
+                        }
+                        if r.layout.geom_parts[g] == Part::Trunk && r.model.geom_body(other) == 0 {
+                            s.trunk_on_ground = true;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+        s
+    }
+
+    fn observe(&mut self, out: &mut [f32]) {
+        debug_assert_eq!(out.len(), OBS_DIM);
+        let rng = Some(&mut self.rng);
+        write_observation(
+            &self.state,
+            &self.command,
+            &self.action,
+            &self.robot.default_q_rad,
+            &self.cfg.observation,
+            rng,
+            out,
+        );
+    }
+}
+
+fn empty_summary(env_index: usize) -> EpisodeSummary {
+    EpisodeSummary {
+        env_index,
+        steps: 0,
+        end: EpisodeEnd::TimeOut,
+        reward_terms: [0.0; NUM_REWARD_TERMS],
+        risk_penalty: 0.0,
+        total_reward: 0.0,
+        risk_exceeded: [0; NUM_RISK_TERMS],
+        risk_fired: [0; NUM_RISK_TERMS],
+        terrain_level: 0,
+        distance_m: 0.0,
+        commanded_distance_m: 0.0,
+    }
+}

@@ -1,0 +1,207 @@
+//! [`VecEnv`]: N environments stepped in parallel with rayon, auto-reset,
+//! batched buffers allocated once. Each env owns its RNG, so a seed gives
+//! bit-identical rollouts whatever the thread count.
+
+use std::sync::Arc;
+
+use rayon::prelude::*;
+
+use super::config::EnvConfig;
+use super::observation::{ACT_DIM, OBS_DIM};
+use super::risk::NUM_RISK_TERMS;
+use super::single::{Env, EpisodeSummary};
+use super::terrain::{Curriculum, Terrain};
+use crate::sim::{Model, Result, SimError};
+
+/// Batched outputs of one step, row-major (env-major).
+#[derive(Debug, Clone)]
+pub struct Batch {
+    /// [n x OBS_DIM] observations after the step (new episode's first after a reset).
+    pub obs: Vec<f32>,
+    pub rewards: Vec<f32>,
+    /// 1.0 where the episode ended this step (termination or time-out).
+    pub dones: Vec<f32>,
+    /// 1.0 where it ended by time-out.
+    pub time_outs: Vec<f32>,
+    /// [n x OBS_DIM]: the true last observation of an episode that ended this
+    /// step (valid where `dones` is 1; zeros after a physics failure).
+    pub final_obs: Vec<f32>,
+    /// Risk thresholds exceeded / penalties fired this step, summed over envs.
+    pub risk_exceeded: [u64; NUM_RISK_TERMS],
+    pub risk_fired: [u64; NUM_RISK_TERMS],
+    pub pushes: u64,
+}
+
+impl Batch {
+    fn new(n: usize) -> Batch {
+        Batch {
+            obs: vec![0.0; n * OBS_DIM],
+            rewards: vec![0.0; n],
+            dones: vec![0.0; n],
+            time_outs: vec![0.0; n],
+            final_obs: vec![0.0; n * OBS_DIM],
+            risk_exceeded: [0; NUM_RISK_TERMS],
+            risk_fired: [0; NUM_RISK_TERMS],
+            pushes: 0,
+        }
+    }
+}
+
+pub struct VecEnv {
+    envs: Vec<Env>,
+    /// Terrain levels and types (rough terrain only).
+    curriculum: Option<Curriculum>,
+    pool: rayon::ThreadPool,
+    batch: Batch,
+    /// Episodes finished since the last [`VecEnv::drain_episodes`].
+    episodes: Vec<EpisodeSummary>,
+}
+
+impl VecEnv {
+    /// `n` envs over copies of `base_model`, stepped on `threads` threads.
+    pub fn new(
+        cfg: Arc<EnvConfig>,
+        base_model: &Model,
+        terrain: Option<Arc<Terrain>>,
+        n: usize,
+        threads: usize,
+        seed: u64,
+    ) -> Result<VecEnv> {
+        if n == 0 {
+            return Err(SimError::Invalid(
+                "the number of envs must be at least 1".into(),
+            ));
+        }
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .thread_name(|i| format!("rall-env-{i}"))
+            .build()
+            .map_err(|e| SimError::Invalid(format!("cannot start {threads} env threads: {e}")))?;
+        let envs = pool.install(|| {
+            (0..n)
+                .into_par_iter()
+                .map(|i| Env::new(cfg.clone(), base_model, terrain.clone(), seed, i))
+                .collect::<Result<Vec<_>>>()
+        })?;
+        let curriculum = terrain
+            .as_ref()
+            .map(|t| Curriculum::new(t.config(), n, seed));
+        let mut v = VecEnv {
+            envs,
+            curriculum,
+            pool,
+            batch: Batch::new(n),
+            episodes: Vec::with_capacity(4 * n),
+        };
+        v.sync_terrain_cells();
+        v.reset_all()?;
+        Ok(v)
+    }
+
+    pub fn num_envs(&self) -> usize {
+        self.envs.len()
+    }
+    pub fn envs(&self) -> &[Env] {
+        &self.envs
+    }
+    pub fn envs_mut(&mut self) -> &mut [Env] {
+        &mut self.envs
+    }
+    /// The last step's outputs (after [`VecEnv::reset_all`], only `obs` is meaningful).
+    pub fn batch(&self) -> &Batch {
+        &self.batch
+    }
+
+    fn sync_terrain_cells(&mut self) {
+        if let Some(c) = &self.curriculum {
+            for (i, env) in self.envs.iter_mut().enumerate() {
+                env.set_terrain_cell(c.level(i), c.terrain_type(i));
+            }
+        }
+    }
+
+    /// Resets every env and fills `batch().obs`.
+    pub fn reset_all(&mut self) -> Result<()> {
+        let obs = &mut self.batch.obs;
+        self.pool.install(|| {
+            self.envs
+                .par_iter_mut()
+                .zip(obs.par_chunks_mut(OBS_DIM))
+                .try_for_each(|(env, o)| env.reset(o))
+        })
+    }
+
+    /// legged_gym's trick: random episode progress so time-outs spread out.
+    pub fn randomize_episode_progress(&mut self) {
+        for env in &mut self.envs {
+            env.randomize_episode_progress();
+        }
+    }
+
+    /// Steps all envs with `actions` ([n x ACT_DIM]); results in [`VecEnv::batch`].
+    pub fn step(&mut self, actions: &[f32]) -> &Batch {
+        assert_eq!(
+            actions.len(),
+            self.envs.len() * ACT_DIM,
+            "actions must be n_envs x {ACT_DIM}"
+        );
+        let b = &mut self.batch;
+        self.pool.install(|| {
+            self.envs
+                .par_iter_mut()
+                .zip(actions.par_chunks(ACT_DIM))
+                .zip(b.obs.par_chunks_mut(OBS_DIM))
+                .zip(b.final_obs.par_chunks_mut(OBS_DIM))
+                .zip(b.rewards.par_iter_mut())
+                .zip(b.dones.par_iter_mut())
+                .zip(b.time_outs.par_iter_mut())
+                .for_each(|((((((env, a), o), fo), r), d), t)| {
+                    let res = env.step(a, o, fo);
+                    *r = res.reward as f32;
+                    *d = res.done as u8 as f32;
+                    *t = res.time_out as u8 as f32;
+                    env.last_step = res;
+                });
+        });
+        b.risk_exceeded = [0; NUM_RISK_TERMS];
+        b.risk_fired = [0; NUM_RISK_TERMS];
+        b.pushes = 0;
+        for (i, env) in self.envs.iter_mut().enumerate() {
+            let res = env.last_step;
+            for k in 0..NUM_RISK_TERMS {
+                b.risk_exceeded[k] += res.risk.exceeded[k] as u64;
+                b.risk_fired[k] += res.risk.fired[k] as u64;
+            }
+            b.pushes += res.pushed as u64;
+            if let Some(s) = env.take_summary() {
+                // Auto-reset (rare: about one env in a thousand per step), after
+                // the curriculum has seen the episode.
+                if let Some(c) = &mut self.curriculum {
+                    c.update(i, s.distance_m, s.commanded_distance_m);
+                    env.set_terrain_cell(c.level(i), c.terrain_type(i));
+                }
+                let obs = &mut b.obs[i * OBS_DIM..(i + 1) * OBS_DIM];
+                if env.reset(obs).is_err() {
+                    env.instabilities += 1;
+                }
+                self.episodes.push(s);
+            }
+        }
+        &self.batch
+    }
+
+    /// Episodes that finished since the last call.
+    pub fn drain_episodes(&mut self) -> std::vec::Drain<'_, EpisodeSummary> {
+        self.episodes.drain(..)
+    }
+
+    /// Total physics failures over all envs.
+    pub fn instabilities(&self) -> u64 {
+        self.envs.iter().map(|e| e.instabilities).sum()
+    }
+
+    /// Mean terrain level over envs (0 on flat ground).
+    pub fn mean_terrain_level(&self) -> f64 {
+        self.curriculum.as_ref().map_or(0.0, |c| c.mean_level())
+    }
+}

@@ -1,0 +1,200 @@
+//! Issue 3: the env and VecEnv over MuJoCo: randomisation, pushes, episodes,
+//! determinism across thread counts.
+
+use std::sync::Arc;
+
+use rall::env::config::PushConfig;
+use rall::env::terrain::TerrainKind;
+use rall::env::{build_scene, Env, EnvConfig, EpisodeEnd, VecEnv, ACT_DIM, OBS_DIM};
+use rall::sim::ObjKind;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn cfg() -> EnvConfig {
+    EnvConfig {
+        robot_mjcf: concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml").into(),
+        ..Default::default()
+    }
+}
+
+fn random_actions(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
+    (0..n * ACT_DIM).map(|_| rng.gen_range(-1.0..1.0)).collect()
+}
+
+#[test]
+fn randomized_friction_and_mass_are_in_each_envs_own_model() {
+    let c = cfg();
+    let scene = build_scene(&c, 0).unwrap();
+    let base_trunk =
+        scene.model.body_mass_kg()[scene.model.require_id(ObjKind::Body, "trunk").unwrap()];
+    let v = VecEnv::new(Arc::new(c), &scene.model, None, 8, 1, 7).unwrap();
+    let mut frictions = Vec::new();
+    for env in v.envs() {
+        let m = &env.robot().model;
+        let draw = env.draw;
+        let f = draw.friction.unwrap();
+        assert!((0.5..=1.5).contains(&f));
+        assert!((-0.5..=1.0).contains(&draw.added_base_mass_kg));
+        let foot = m.require_id(ObjKind::Geom, "FL_foot").unwrap();
+        let floor = m.require_id(ObjKind::Geom, "terrain").unwrap();
+        assert_eq!(m.geom_friction()[foot][0], f);
+        assert_eq!(m.geom_friction()[floor][0], f);
+        let trunk = env.robot().layout.trunk_body;
+        assert!((m.body_mass_kg()[trunk] - (base_trunk + draw.added_base_mass_kg)).abs() < 1e-12);
+        assert!(
+            (m.body_subtree_mass_kg()[0] - m.total_mass_kg()).abs() < 1e-9,
+            "subtree mass kept consistent"
+        );
+        frictions.push(f);
+    }
+    frictions.dedup();
+    assert!(frictions.len() > 4, "envs draw different frictions");
+    // the shared base model is untouched
+    assert_eq!(scene.model.body_mass_kg()[1], base_trunk);
+}
+
+#[test]
+fn a_push_changes_the_base_velocity_by_the_sampled_amount() {
+    let c = Arc::new(cfg());
+    let scene = build_scene(&c, 0).unwrap();
+    let mut env = Env::new(c, &scene.model, None, 3, 0).unwrap();
+    let mut obs = [0.0f32; OBS_DIM];
+    env.reset(&mut obs).unwrap();
+    let a = env.robot().layout.root_dof_adr;
+    let before = env.robot().data.qvel()[a..a + 3].to_vec();
+    let dv = env.random_kick(1.0);
+    let after = env.robot().data.qvel()[a..a + 3].to_vec();
+    assert!(dv.iter().all(|d| d.abs() <= 1.0) && dv.iter().any(|d| d.abs() > 1e-3));
+    assert!((after[0] - before[0] - dv[0]).abs() < 1e-12);
+    assert!((after[1] - before[1] - dv[1]).abs() < 1e-12);
+    assert_eq!(after[2], before[2]);
+}
+
+#[test]
+fn velocity_kicks_happen_every_interval() {
+    let mut c = cfg();
+    c.randomization.push = PushConfig::VelocityKick {
+        interval_s: 1.0,
+        max_mps: 0.5,
+    };
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 0).unwrap();
+    let mut env = Env::new(c, &scene.model, None, 3, 0).unwrap();
+    let (mut obs, mut fin) = ([0.0f32; OBS_DIM], [0.0f32; OBS_DIM]);
+    env.reset(&mut obs).unwrap();
+    let mut pushed_at = Vec::new();
+    for _ in 0..120 {
+        let r = env.step(&[0.0; ACT_DIM], &mut obs, &mut fin);
+        if r.pushed {
+            pushed_at.push(env.step_in_episode());
+        }
+        if r.done {
+            break;
+        }
+    }
+    // pushes are applied at the start of steps 50 and 100 (counted after the step)
+    assert_eq!(pushed_at, vec![51, 101]);
+}
+
+#[test]
+fn time_out_keeps_the_final_observation_and_resets() {
+    let mut c = cfg();
+    c.episode.length_s = 0.2; // 10 policy steps
+    c.randomization.push = PushConfig::None;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 0).unwrap();
+    let mut v = VecEnv::new(c, &scene.model, None, 2, 1, 0).unwrap();
+    let zeros = vec![0.0f32; 2 * ACT_DIM];
+    for step in 1..=10 {
+        let b = v.step(&zeros);
+        if step < 10 {
+            assert!(b.dones.iter().all(|&d| d == 0.0));
+        } else {
+            assert_eq!(b.dones, vec![1.0, 1.0]);
+            assert_eq!(b.time_outs, vec![1.0, 1.0]);
+            // the final observation is of a standing robot mid-episode, the new one starts
+            // with a zero previous action and differs from the final one
+            assert_ne!(&b.final_obs[..OBS_DIM], &b.obs[..OBS_DIM]);
+            assert!(
+                (b.final_obs[8] + 1.0).abs() < 0.2,
+                "gravity z of the final obs"
+            );
+        }
+    }
+    let eps: Vec<_> = v.drain_episodes().collect();
+    assert_eq!(eps.len(), 2);
+    assert!(eps
+        .iter()
+        .all(|e| e.steps == 10 && e.end == EpisodeEnd::TimeOut));
+    assert!(
+        eps[0].reward_terms[0] > 0.0,
+        "lin vel tracking term accumulates"
+    );
+    assert_eq!(v.envs()[0].step_in_episode(), 0);
+}
+
+fn end_after_placing(roll_rad: f64, z_m: f64) -> Option<EpisodeEnd> {
+    let mut c = cfg();
+    c.randomization.push = PushConfig::None;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 0).unwrap();
+    let mut env = Env::new(c, &scene.model, None, 0, 0).unwrap();
+    let (mut obs, mut fin) = ([0.0f32; OBS_DIM], [0.0f32; OBS_DIM]);
+    env.reset(&mut obs).unwrap();
+    let a = env.robot().layout.root_qpos_adr;
+    let q = env.robot_mut().data.qpos_mut();
+    q[a + 2] = z_m;
+    q[a + 3..a + 7].copy_from_slice(&[(roll_rad / 2.0).cos(), (roll_rad / 2.0).sin(), 0.0, 0.0]);
+    for _ in 0..50 {
+        let r = env.step(&[0.0; ACT_DIM], &mut obs, &mut fin);
+        if r.done {
+            assert!(!r.time_out);
+            return env.take_summary().map(|s| s.end);
+        }
+    }
+    None
+}
+
+#[test]
+fn tilting_past_the_limit_or_landing_on_the_trunk_terminates() {
+    assert_eq!(end_after_placing(1.4, 0.6), Some(EpisodeEnd::Tilt));
+    assert_eq!(
+        end_after_placing(std::f64::consts::PI, 0.05),
+        Some(EpisodeEnd::TrunkContact)
+    );
+    assert_eq!(
+        end_after_placing(0.0, 0.39),
+        None,
+        "a standing robot does not terminate"
+    );
+}
+
+fn rollout(threads: usize, terrain: TerrainKind) -> (Vec<u32>, Vec<u32>) {
+    let mut c = cfg();
+    c.terrain.kind = terrain;
+    c.episode.length_s = 1.0;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 5).unwrap();
+    let mut v = VecEnv::new(c, &scene.model, scene.terrain.clone(), 6, threads, 11).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let (mut obs_bits, mut rew_bits) = (Vec::new(), Vec::new());
+    for _ in 0..120 {
+        let a = random_actions(&mut rng, 6);
+        let b = v.step(&a);
+        obs_bits.extend(b.obs.iter().map(|x| x.to_bits()));
+        rew_bits.extend(b.rewards.iter().map(|x| x.to_bits()));
+    }
+    (obs_bits, rew_bits)
+}
+
+#[test]
+fn same_seed_gives_bit_identical_rollouts_with_one_or_two_threads() {
+    for terrain in [TerrainKind::Flat, TerrainKind::Rough] {
+        let one = rollout(1, terrain);
+        let two = rollout(2, terrain);
+        assert!(
+            one.0 == two.0 && one.1 == two.1,
+            "{terrain:?} rollouts differ across thread counts"
+        );
+    }
+}
