@@ -17,7 +17,9 @@ fn flat_robot() -> Robot {
 #[test]
 fn model_has_sdk_ordered_hinges_and_actuators_and_the_facts_mass() {
     let m = Model::from_xml_path(ALIENGO).unwrap();
-    let hinges: Vec<usize> = (0..m.njnt()).filter(|&j| m.joint_kind(j) == JointKind::Hinge).collect();
+    let hinges: Vec<usize> = (0..m.njnt())
+        .filter(|&j| m.joint_kind(j) == JointKind::Hinge)
+        .collect();
     assert_eq!(hinges.len(), 12);
     assert_eq!(m.nu(), 12);
     let mut expected = Vec::new();
@@ -28,7 +30,11 @@ fn model_has_sdk_ordered_hinges_and_actuators_and_the_facts_mass() {
     }
     for (i, name) in expected.iter().enumerate() {
         assert_eq!(m.name(ObjKind::Joint, hinges[i]), name, "joint order");
-        assert_eq!(m.actuator_joint(i), Some(hinges[i]), "actuator {i} drives {name}");
+        assert_eq!(
+            m.actuator_joint(i),
+            Some(hinges[i]),
+            "actuator {i} drives {name}"
+        );
     }
     let limits: Vec<[f64; 2]> = (0..12).map(|a| m.actuator_ctrl_range(a).unwrap()).collect();
     for (i, l) in limits.iter().enumerate() {
@@ -36,11 +42,19 @@ fn model_has_sdk_ordered_hinges_and_actuators_and_the_facts_mass() {
         assert_eq!(*l, [-expected, expected], "torque limit of actuator {i}");
     }
     let mass = m.total_mass_kg();
-    assert!((mass - FACTS_TOTAL_MASS_KG).abs() / FACTS_TOTAL_MASS_KG < 0.01, "total mass {mass}");
+    assert!(
+        (mass - FACTS_TOTAL_MASS_KG).abs() / FACTS_TOTAL_MASS_KG < 0.01,
+        "total mass {mass}"
+    );
     assert!(m.id(ObjKind::Key, "stand").is_some());
     // no cylinder collision geoms (slow in 2.2.2)
     for g in 0..m.ngeom() {
-        assert_ne!(m.geom_shape(g), rall::sim::GeomShape::Cylinder, "geom {}", m.name(ObjKind::Geom, g));
+        assert_ne!(
+            m.geom_shape(g),
+            rall::sim::GeomShape::Cylinder,
+            "geom {}",
+            m.name(ObjKind::Geom, g)
+        );
     }
 }
 
@@ -57,13 +71,19 @@ fn pose(robot: &mut Robot, q: [f64; NUM_JOINTS]) {
 }
 
 fn foot_pos(robot: &Robot, leg: &str) -> [f64; 3] {
-    let b = robot.model.require_id(ObjKind::Body, &format!("{leg}_foot")).unwrap();
+    let b = robot
+        .model
+        .require_id(ObjKind::Body, &format!("{leg}_foot"))
+        .unwrap();
     robot.data.xpos()[b]
 }
 
 fn assert_close(got: [f64; 3], want: [f64; 3], what: &str) {
     for k in 0..3 {
-        assert!((got[k] - want[k]).abs() < 1e-6, "{what}: got {got:?}, want {want:?}");
+        assert!(
+            (got[k] - want[k]).abs() < 1e-6,
+            "{what}: got {got:?}, want {want:?}"
+        );
     }
 }
 
@@ -71,12 +91,21 @@ fn assert_close(got: [f64; 3], want: [f64; 3], what: &str) {
 fn legs_are_two_quarter_metre_segments() {
     let mut robot = flat_robot();
     pose(&mut robot, [0.0; NUM_JOINTS]);
-    for (leg, (sx, sy)) in LEGS.iter().zip([(1.0, -1.0), (1.0, 1.0), (-1.0, -1.0), (-1.0, 1.0)]) {
+    for (leg, (sx, sy)) in LEGS
+        .iter()
+        .zip([(1.0, -1.0), (1.0, 1.0), (-1.0, -1.0), (-1.0, 1.0)])
+    {
         // hip axis at (+-0.2399, +-0.051, 0); thigh joint 0.083 further out; foot 0.5 below.
         let want = [sx * 0.2399, sy * (0.051 + 0.083), 1.0 - 0.5];
         assert_close(foot_pos(&robot, leg), want, leg);
-        let thigh = robot.model.require_id(ObjKind::Body, &format!("{leg}_thigh")).unwrap();
-        let calf = robot.model.require_id(ObjKind::Body, &format!("{leg}_calf")).unwrap();
+        let thigh = robot
+            .model
+            .require_id(ObjKind::Body, &format!("{leg}_thigh"))
+            .unwrap();
+        let calf = robot
+            .model
+            .require_id(ObjKind::Body, &format!("{leg}_calf"))
+            .unwrap();
         assert!((robot.data.xpos()[thigh][2] - robot.data.xpos()[calf][2] - 0.25).abs() < 1e-9);
     }
 }
@@ -93,7 +122,11 @@ fn forward_kinematics_matches_hand_computation() {
     // y = -0.083 cos30 + 0.25 sin30 = 0.0531199, z = -0.083 sin30 - 0.25 cos30 = -0.2580064.
     q[6..9].copy_from_slice(&[FRAC_PI_6, FRAC_PI_3, -2.0 * FRAC_PI_3]);
     pose(&mut robot, q);
-    assert_close(foot_pos(&robot, "FL"), [0.2399 - 0.25, 0.051 + 0.083, 1.0 - 0.25], "FL");
+    assert_close(
+        foot_pos(&robot, "FL"),
+        [0.2399 - 0.25, 0.051 + 0.083, 1.0 - 0.25],
+        "FL",
+    );
     let y = -0.083 * FRAC_PI_6.cos() + 0.25 * FRAC_PI_6.sin();
     let z = -0.083 * FRAC_PI_6.sin() - 0.25 * FRAC_PI_6.cos();
     assert!((y - 0.0531199).abs() < 1e-6 && (z + 0.2580064).abs() < 1e-6);
@@ -106,7 +139,10 @@ fn pd_holds_the_stand_pose_for_ten_seconds_on_feet_only() {
     let report = standing_check(&mut robot, 10.0).unwrap();
     assert!(report.instability.is_none(), "{report:?}");
     assert_eq!(report.warnings, 0, "{report:?}");
-    assert!(report.min_height_m >= 0.30 && report.max_height_m <= 0.45, "{report:?}");
+    assert!(
+        report.min_height_m >= 0.30 && report.max_height_m <= 0.45,
+        "{report:?}"
+    );
     assert!(report.other_contacts.is_empty(), "{report:?}");
     assert_eq!(report.feet_in_contact, 4, "{report:?}");
     assert!(robot.data.qpos().iter().all(|v| v.is_finite()));
@@ -120,12 +156,21 @@ fn contact_forces_carry_the_robot_weight() {
     let mut normal_n = 0.0;
     let contacts: Vec<_> = robot.data.contacts().collect();
     for c in &contacts {
-        assert!(matches!(robot.layout.geom_parts[c.geom1], Part::Foot(_) | Part::Other));
+        assert!(matches!(
+            robot.layout.geom_parts[c.geom1],
+            Part::Foot(_) | Part::Other
+        ));
         normal_n += robot.data.contact_force(&robot.model, c.index).unwrap()[0];
     }
     let weight_n = robot.model.total_mass_kg() * 9.81;
-    assert!((normal_n - weight_n).abs() / weight_n < 0.05, "normal {normal_n} vs weight {weight_n}");
-    assert!(robot.data.contact_force(&robot.model, contacts.len()).is_err());
+    assert!(
+        (normal_n - weight_n).abs() / weight_n < 0.05,
+        "normal {normal_n} vs weight {weight_n}"
+    );
+    assert!(robot
+        .data
+        .contact_force(&robot.model, contacts.len())
+        .is_err());
 }
 
 #[test]
@@ -139,14 +184,20 @@ fn missing_file_is_an_error_naming_the_path() {
 fn malformed_xml_is_mujocos_error_naming_the_source() {
     let e = Model::from_xml_str("<mujoco><worldbody><body></mujoco>", "broken.xml").unwrap_err();
     let text = e.to_string();
-    assert!(text.contains("broken.xml") && text.to_lowercase().contains("error"), "{text}");
+    assert!(
+        text.contains("broken.xml") && text.to_lowercase().contains("error"),
+        "{text}"
+    );
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bad.xml");
     std::fs::write(&path, "<mujoco><option timestep=\"abc\"/></mujoco>").unwrap();
     let e = Model::from_xml_path(&path).unwrap_err();
     assert!(e.to_string().contains("bad.xml"), "{e}");
     // a 2.2.2-unsupported feature is refused, not crashed on
-    let e = Model::from_xml_str("<mujoco><option integrator=\"implicitfast\"/></mujoco>", "new.xml");
+    let e = Model::from_xml_str(
+        "<mujoco><option integrator=\"implicitfast\"/></mujoco>",
+        "new.xml",
+    );
     assert!(e.is_err());
 }
 
@@ -156,8 +207,13 @@ fn unknown_keyframe_is_an_error_naming_it() {
     let mut d = Data::new(&m).unwrap();
     let e = d.reset_to_keyframe(&m, "crouch").unwrap_err();
     assert!(e.to_string().contains("crouch"), "{e}");
-    let control = ControlConfig { default_keyframe: "nope".into(), ..Default::default() };
-    let e = Robot::new(m.try_clone().unwrap(), control).err().expect("refused");
+    let control = ControlConfig {
+        default_keyframe: "nope".into(),
+        ..Default::default()
+    };
+    let e = Robot::new(m.try_clone().unwrap(), control)
+        .err()
+        .expect("refused");
     assert!(e.to_string().contains("nope"));
 }
 
@@ -192,7 +248,11 @@ fn models_and_data_work_from_other_threads_and_copies_are_independent() {
     let mut copy = base.try_clone().unwrap();
     let floor = copy.require_id(ObjKind::Geom, "floor").unwrap();
     copy.geom_friction_mut()[floor][0] = 0.3;
-    assert_eq!(base.geom_friction()[floor][0], 1.0, "copies do not share memory");
+    assert_eq!(
+        base.geom_friction()[floor][0],
+        1.0,
+        "copies do not share memory"
+    );
     let handle = std::thread::spawn(move || {
         let mut robot = Robot::new(copy, ControlConfig::default()).unwrap();
         for _ in 0..50 {
@@ -217,5 +277,11 @@ fn pd_law_clips_to_torque_limits() {
     assert!((tau[0] - 3.4).abs() < 1e-12);
     let targets = c.joint_targets(&[0.5; NUM_JOINTS], &[2.0; 12]);
     assert!((targets[0] - (0.5 + 0.25 * 2.0)).abs() < 1e-12);
-    assert!(ControlConfig { decimation: 0, ..c.clone() }.validate().unwrap_err().contains("decimation"));
+    assert!(ControlConfig {
+        decimation: 0,
+        ..c.clone()
+    }
+    .validate()
+    .unwrap_err()
+    .contains("decimation"));
 }

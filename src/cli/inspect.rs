@@ -19,7 +19,11 @@ pub struct InspectArgs {
 
 pub fn run(args: &InspectArgs) -> Result<()> {
     let model = Model::from_xml_path(&args.model)?;
-    println!("model {}: MuJoCo {}", args.model.display(), crate::sim::mujoco_version());
+    println!(
+        "model {}: MuJoCo {}",
+        args.model.display(),
+        crate::sim::mujoco_version()
+    );
     print_model(&model);
     if args.stand_seconds <= 0.0 {
         return Ok(());
@@ -39,7 +43,11 @@ pub fn run(args: &InspectArgs) -> Result<()> {
     let report = standing_check(&mut robot, args.stand_seconds)?;
     println!(
         "\nstanding check: {:.1} s under PD (Kp {}, Kd {}, dt {} s) at keyframe '{}'",
-        report.seconds, control.kp_nm_per_rad, control.kd_nm_s_per_rad, control.physics_dt_s, control.default_keyframe
+        report.seconds,
+        control.kp_nm_per_rad,
+        control.kd_nm_s_per_rad,
+        control.physics_dt_s,
+        control.default_keyframe
     );
     println!(
         "  trunk height: min {:.3} m, max {:.3} m, final {:.3} m",
@@ -53,17 +61,27 @@ pub fn run(args: &InspectArgs) -> Result<()> {
             println!("  other robot contact: {name} in {steps} steps");
         }
     }
-    println!("  max |torque|: {:.1} N m; MuJoCo warnings: {}", report.max_torque_nm, report.warnings);
+    println!(
+        "  max |torque|: {:.1} N m; MuJoCo warnings: {}",
+        report.max_torque_nm, report.warnings
+    );
     match &report.instability {
         Some(why) => println!("  UNSTABLE: {why}"),
         None => println!("  stable: yes"),
     }
-    println!("  holds the pose: {}", if report.holds_pose() { "yes" } else { "NO" });
+    println!(
+        "  holds the pose: {}",
+        if report.holds_pose() { "yes" } else { "NO" }
+    );
     Ok(())
 }
 
 fn print_model(m: &Model) {
-    println!("timestep {} s, total mass {:.3} kg", m.timestep_s(), m.total_mass_kg());
+    println!(
+        "timestep {} s, total mass {:.3} kg",
+        m.timestep_s(),
+        m.total_mass_kg()
+    );
     println!("\nbodies ({}):", m.nbody());
     for b in 0..m.nbody() {
         let parent = m.name(ObjKind::Body, m.body_parent(b));
@@ -77,17 +95,33 @@ fn print_model(m: &Model) {
     }
     println!("\njoints ({}):", m.njnt());
     for j in 0..m.njnt() {
-        let range = m
-            .joint_range(j)
-            .map_or("unlimited".to_string(), |r| format!("[{:.4}, {:.4}]", r[0], r[1]));
-        println!("  {:>2} {:<16} {:?} range {}", j, m.name(ObjKind::Joint, j), m.joint_kind(j), range);
+        let range = m.joint_range(j).map_or("unlimited".to_string(), |r| {
+            format!("[{:.4}, {:.4}]", r[0], r[1])
+        });
+        println!(
+            "  {:>2} {:<16} {:?} range {}",
+            j,
+            m.name(ObjKind::Joint, j),
+            m.joint_kind(j),
+            range
+        );
     }
     println!("\nactuators ({}):", m.nu());
     for a in 0..m.nu() {
-        let joint = m.actuator_joint(a).map_or("-", |j| m.name(ObjKind::Joint, j));
+        let joint = m
+            .actuator_joint(a)
+            .map_or("-", |j| m.name(ObjKind::Joint, j));
         let range = m
             .actuator_ctrl_range(a)
-            .map_or("unlimited".to_string(), |r| format!("[{}, {}] N m", r[0], r[1]));
-        println!("  {:>2} {:<10} joint {:<16} torque {}", a, m.name(ObjKind::Actuator, a), joint, range);
+            .map_or("unlimited".to_string(), |r| {
+                format!("[{}, {}] N m", r[0], r[1])
+            });
+        println!(
+            "  {:>2} {:<10} joint {:<16} torque {}",
+            a,
+            m.name(ObjKind::Actuator, a),
+            joint,
+            range
+        );
     }
 }

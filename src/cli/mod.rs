@@ -5,7 +5,11 @@ pub mod inspect;
 use clap::{Parser, Subcommand};
 
 #[derive(Debug, Parser)]
-#[command(name = "rall", version, about = "Risk-averse legged locomotion (RALL): train, evaluate and inspect quadruped policies on CPU")]
+#[command(
+    name = "rall",
+    version,
+    about = "Risk-averse legged locomotion (RALL): train, evaluate and inspect quadruped policies on CPU"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,

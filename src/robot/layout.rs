@@ -75,11 +75,15 @@ impl RobotLayout {
         for (i, leg) in LEGS.iter().enumerate() {
             let g = model.require_id(ObjKind::Geom, &format!("{leg}_foot"))?;
             if model.geom_shape(g) != GeomShape::Sphere {
-                return Err(SimError::Invalid(format!("geom {leg}_foot must be a sphere")));
+                return Err(SimError::Invalid(format!(
+                    "geom {leg}_foot must be a sphere"
+                )));
             }
             foot_geoms[i] = g;
         }
-        let geom_parts = (0..model.ngeom()).map(|g| classify(model, g, &foot_geoms)).collect();
+        let geom_parts = (0..model.ngeom())
+            .map(|g| classify(model, g, &foot_geoms))
+            .collect();
         Ok(RobotLayout {
             joint_names,
             joint_ids,
@@ -122,7 +126,11 @@ fn classify(model: &Model, geom: usize, feet: &[usize; 4]) -> Part {
     }
     let name = model.name(ObjKind::Geom, geom);
     let body = model.name(ObjKind::Body, model.geom_body(geom));
-    for (suffix, part) in [("_hip", Part::Hip), ("_thigh", Part::Thigh), ("_calf", Part::Calf)] {
+    for (suffix, part) in [
+        ("_hip", Part::Hip),
+        ("_thigh", Part::Thigh),
+        ("_calf", Part::Calf),
+    ] {
         if LEGS.iter().any(|leg| body == format!("{leg}{suffix}")) {
             return part;
         }

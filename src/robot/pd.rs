@@ -61,13 +61,23 @@ impl ControlConfig {
             }
         }
         if !(self.kd_nm_s_per_rad.is_finite() && self.kd_nm_s_per_rad >= 0.0) {
-            return Err(format!("control.kd_nm_s_per_rad must be >= 0, got {}", self.kd_nm_s_per_rad));
+            return Err(format!(
+                "control.kd_nm_s_per_rad must be >= 0, got {}",
+                self.kd_nm_s_per_rad
+            ));
         }
         if self.decimation == 0 {
             return Err("control.decimation must be at least 1".into());
         }
-        if self.torque_limits_nm.iter().any(|&t| !(t.is_finite() && t > 0.0)) {
-            return Err(format!("control.torque_limits_nm must be positive, got {:?}", self.torque_limits_nm));
+        if self
+            .torque_limits_nm
+            .iter()
+            .any(|&t| !(t.is_finite() && t > 0.0))
+        {
+            return Err(format!(
+                "control.torque_limits_nm must be positive, got {:?}",
+                self.torque_limits_nm
+            ));
         }
         Ok(())
     }
@@ -78,7 +88,11 @@ impl ControlConfig {
     }
 
     /// Joint targets (rad) for a policy action: q_default + scale * clip(action).
-    pub fn joint_targets(&self, default_rad: &[f64; NUM_JOINTS], action: &[f32]) -> [f64; NUM_JOINTS] {
+    pub fn joint_targets(
+        &self,
+        default_rad: &[f64; NUM_JOINTS],
+        action: &[f32],
+    ) -> [f64; NUM_JOINTS] {
         std::array::from_fn(|i| {
             let a = (action[i] as f64).clamp(-self.clip_actions, self.clip_actions);
             default_rad[i] + self.action_scale_rad * a
@@ -94,7 +108,8 @@ impl ControlConfig {
         qd_rad_s: &[f64; NUM_JOINTS],
     ) -> [f64; NUM_JOINTS] {
         std::array::from_fn(|i| {
-            let tau = self.kp_nm_per_rad * (target_rad[i] - q_rad[i]) - self.kd_nm_s_per_rad * qd_rad_s[i];
+            let tau = self.kp_nm_per_rad * (target_rad[i] - q_rad[i])
+                - self.kd_nm_s_per_rad * qd_rad_s[i];
             let limit = self.torque_limit_nm(i);
             tau.clamp(-limit, limit)
         })
