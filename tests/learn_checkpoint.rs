@@ -37,7 +37,8 @@ fn trained(critic: CriticKind, seed: u64) -> Learner {
         let rew: Vec<f32> = (0..envs).map(|_| rng.gen_range(-1.0..1.0)).collect();
         let done = vec![t == 5; envs];
         let tout = vec![t == 5; envs];
-        r.push(&o, &out, &rew, &done, &tout, &obs(envs, 200)).unwrap();
+        r.push(&o, &out, &rew, &done, &tout, &obs(envs, 200))
+            .unwrap();
     }
     r.set_last_obs(&obs(envs, 300)).unwrap();
     learner.update(&r).unwrap();
@@ -62,7 +63,10 @@ fn save_load_roundtrip_gives_identical_outputs() {
         let path = dir.path().join("ckpt.safetensors");
         let a = trained(critic, 1);
         let meta = HashMap::from([
-            ("config".to_string(), serde_json::to_string(a.config()).unwrap()),
+            (
+                "config".to_string(),
+                serde_json::to_string(a.config()).unwrap(),
+            ),
             ("version".to_string(), "test".to_string()),
         ]);
         save_checkpoint(&path, &a.state(), &meta).unwrap();
@@ -77,9 +81,18 @@ fn save_load_roundtrip_gives_identical_outputs() {
         assert_eq!(a.state(), b.state());
         assert_eq!(a.learning_rate(), b.learning_rate());
         let names: Vec<&str> = tensors.iter().map(|t| t.name.as_str()).collect();
-        for n in ["adam.step", "lr", "actor.log_std", "adam.m.actor.l0.weight", "adam.v.critic.l0.bias"]
-        {
-            let n = if critic == CriticKind::Iqn { n.replace("critic.l0", "critic.trunk.l0") } else { n.to_string() };
+        for n in [
+            "adam.step",
+            "lr",
+            "actor.log_std",
+            "adam.m.actor.l0.weight",
+            "adam.v.critic.l0.bias",
+        ] {
+            let n = if critic == CriticKind::Iqn {
+                n.replace("critic.l0", "critic.trunk.l0")
+            } else {
+                n.to_string()
+            };
             assert!(names.contains(&n.as_str()), "{n} missing from {names:?}");
         }
     }
@@ -95,17 +108,27 @@ fn mismatched_shape_is_refused_naming_the_tensor() {
     let mut b = Learner::new(OBS, ACT, &wider, 1).unwrap();
     let before = b.state();
     let err = b.load_state(&a.state()).unwrap_err().to_string();
-    assert!(err.contains("actor.l1.weight") && err.contains("[16, 8]") && err.contains("[16, 9]"), "{err}");
+    assert!(
+        err.contains("actor.l1.weight") && err.contains("[16, 8]") && err.contains("[16, 9]"),
+        "{err}"
+    );
     assert_eq!(b.state(), before, "a refused load must change nothing");
 
     // a missing tensor (scalar-critic checkpoint into an IQN learner)
     let s = Learner::new(OBS, ACT, &cfg(CriticKind::Scalar), 1).unwrap();
     let mut iqn = Learner::new(OBS, ACT, &cfg(CriticKind::Iqn), 1).unwrap();
     let err = iqn.load_state(&s.state()).unwrap_err().to_string();
-    assert!(err.contains("missing tensor `critic.trunk.l0.weight`"), "{err}");
+    assert!(
+        err.contains("missing tensor `critic.trunk.l0.weight`"),
+        "{err}"
+    );
     let mut partial: Vec<NamedTensor> = a.state();
     partial.retain(|t| t.name != "lr");
-    assert!(iqn.load_state(&partial).unwrap_err().to_string().contains("`lr`"));
+    assert!(iqn
+        .load_state(&partial)
+        .unwrap_err()
+        .to_string()
+        .contains("`lr`"));
 }
 
 #[test]

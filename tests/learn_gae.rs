@@ -19,8 +19,15 @@ fn rollout() -> Rollout {
             action_std: vec![1.0],
         };
         let final_obs = if time_outs[t] { vec![-7.0] } else { vec![] };
-        r.push(&[t as f32], &out, &[t as f32 + 1.0], &[dones[t]], &[time_outs[t]], &final_obs)
-            .unwrap();
+        r.push(
+            &[t as f32],
+            &out,
+            &[t as f32 + 1.0],
+            &[dones[t]],
+            &[time_outs[t]],
+            &final_obs,
+        )
+        .unwrap();
     }
     r.set_last_obs(&[5.0]).unwrap();
     r
@@ -87,12 +94,29 @@ fn random_horizon_targets_average_to_the_lambda_return() {
     let (gamma, lambda) = (0.9, 0.8);
     let next = next_values(&r, 1, &VALUES, &[3.0], &[10.0]);
     let adv = gae(&r, &VALUES, &next, gamma, lambda);
-    let cur: Vec<f32> = VALUES.iter().flat_map(|&v| std::iter::repeat_n(v, n)).collect();
+    let cur: Vec<f32> = VALUES
+        .iter()
+        .flat_map(|&v| std::iter::repeat_n(v, n))
+        .collect();
     let next_z = next_values(&r, n, &cur, &vec![3.0; n], &vec![10.0; n]);
-    let targets = quantile_targets(&r, &next_z, n, gamma, lambda, &mut ChaCha8Rng::seed_from_u64(1));
+    let targets = quantile_targets(
+        &r,
+        &next_z,
+        n,
+        gamma,
+        lambda,
+        &mut ChaCha8Rng::seed_from_u64(1),
+    );
     for t in 0..5 {
-        let mean = targets[t * n..(t + 1) * n].iter().map(|&x| x as f64).sum::<f64>() / n as f64;
+        let mean = targets[t * n..(t + 1) * n]
+            .iter()
+            .map(|&x| x as f64)
+            .sum::<f64>()
+            / n as f64;
         let want = (adv[t] + VALUES[t]) as f64;
-        assert!((mean - want).abs() < 0.02 * want.abs(), "t {t}: {mean} vs {want}");
+        assert!(
+            (mean - want).abs() < 0.02 * want.abs(),
+            "t {t}: {mean} vs {want}"
+        );
     }
 }

@@ -44,9 +44,9 @@ impl PointMass {
 
     /// Returns (reward, terminated, timed_out).
     fn step(&mut self, a: &[f32]) -> (f32, bool, bool) {
-        for i in 0..2 {
-            self.v[i] = 0.85 * self.v[i] + 0.25 * a[i].clamp(-1.0, 1.0);
-            self.p[i] += 0.1 * self.v[i];
+        for ((v, p), a) in self.v.iter_mut().zip(&mut self.p).zip(a) {
+            *v = 0.85 * *v + 0.25 * a.clamp(-1.0, 1.0);
+            *p += 0.1 * *v;
         }
         self.t += 1;
         let d = (self.p[0] * self.p[0] + self.p[1] * self.p[1]).sqrt();
@@ -118,7 +118,9 @@ fn train(critic: CriticKind, max_iters: usize) -> (usize, f32) {
                 }
                 env.obs(&mut rng, &mut next);
             }
-            rollout.push(&obs, &out, &rew, &done, &tout, &final_obs).unwrap();
+            rollout
+                .push(&obs, &out, &rew, &done, &tout, &final_obs)
+                .unwrap();
             obs = next;
         }
         rollout.set_last_obs(&obs).unwrap();
@@ -137,24 +139,37 @@ fn train(critic: CriticKind, max_iters: usize) -> (usize, f32) {
 #[test]
 fn random_policy_fails_the_threshold() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let random = evaluate_with(|obs| (0..obs.len() / OBS * ACT).map(|_| rng.gen_range(-1.0..1.0)).collect());
+    let random = evaluate_with(|obs| {
+        (0..obs.len() / OBS * ACT)
+            .map(|_| rng.gen_range(-1.0..1.0))
+            .collect()
+    });
     let learner = Learner::new(OBS, ACT, &LearnerConfig::default(), 42).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     let initial = evaluate_with(|obs| learner.act(obs, &mut rng).actions);
     assert!(random < THRESHOLD - 15.0, "random policy return {random}");
-    assert!(initial < THRESHOLD - 15.0, "initial policy return {initial}");
+    assert!(
+        initial < THRESHOLD - 15.0,
+        "initial policy return {initial}"
+    );
 }
 
 #[test]
 fn ppo_learns_with_iqn_cvar_critic() {
     let (iters, ret) = train(CriticKind::Iqn, 100);
     eprintln!("IQN (CVaR_0.5): return {ret} after {iters} iterations");
-    assert!(ret > THRESHOLD, "IQN critic: return {ret} after {iters} iterations");
+    assert!(
+        ret > THRESHOLD,
+        "IQN critic: return {ret} after {iters} iterations"
+    );
 }
 
 #[test]
 fn ppo_learns_with_scalar_critic() {
     let (iters, ret) = train(CriticKind::Scalar, 100);
     eprintln!("scalar: return {ret} after {iters} iterations");
-    assert!(ret > THRESHOLD, "scalar critic: return {ret} after {iters} iterations");
+    assert!(
+        ret > THRESHOLD,
+        "scalar critic: return {ret} after {iters} iterations"
+    );
 }

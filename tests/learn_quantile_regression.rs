@@ -66,7 +66,12 @@ fn iqn_recovers_quantiles_cvar_and_iqr() {
     let want = [-0.1620, -0.0066, 0.1253];
     for (i, tau) in [0.1, 0.5, 0.9].iter().enumerate() {
         assert!((true_quantile(*tau) - want[i]).abs() < 1e-3);
-        assert!((z[i] as f64 - want[i]).abs() < 0.03, "Z({tau}) = {} vs {}", z[i], want[i]);
+        assert!(
+            (z[i] as f64 - want[i]).abs() < 0.03,
+            "Z({tau}) = {} vs {}",
+            z[i],
+            want[i]
+        );
     }
     assert!((z[5] + 20.0).abs() < 1.0, "Z(0.02) = {}", z[5]);
 
@@ -82,7 +87,10 @@ fn iqn_recovers_quantiles_cvar_and_iqr() {
     let grid = Distortion::Cvar { eta: 0.5 }.grid(256);
     let q = critic.quantiles(&obs, 1, &grid);
     let cvar = q.iter().sum::<f32>() as f64 / grid.len() as f64;
-    assert!((cvar - cvar_true).abs() < 0.12, "CVaR_0.5 {cvar} vs {cvar_true}");
+    assert!(
+        (cvar - cvar_true).abs() < 0.12,
+        "CVaR_0.5 {cvar} vs {cvar_true}"
+    );
 }
 
 #[test]
@@ -94,6 +102,10 @@ fn kappa_one_biases_quantiles_of_a_narrow_distribution() {
     // robot's reward scale should be checked against this before trusting the IQR.
     let critic = train(1.0, 4000);
     let z = critic.quantiles(&[1.0], 1, &[0.1, 0.25, 0.75]);
-    assert!((z[0] as f64 - true_quantile(0.1)).abs() > 0.1, "Z(0.1) = {}", z[0]);
+    assert!(
+        (z[0] as f64 - true_quantile(0.1)).abs() > 0.1,
+        "Z(0.1) = {}",
+        z[0]
+    );
     assert!((z[2] - z[1]) as f64 > true_quantile(0.75) - true_quantile(0.25) + 0.02);
 }

@@ -20,7 +20,10 @@ const CASES: [(f32, f32, f32, f32, f32); 6] = [
 #[test]
 fn quantile_huber_matches_hand_values() {
     for (tau, delta, kappa, rho, grad) in CASES {
-        assert!((quantile_huber(tau, delta, kappa) - rho).abs() < 1e-6, "{tau} {delta}");
+        assert!(
+            (quantile_huber(tau, delta, kappa) - rho).abs() < 1e-6,
+            "{tau} {delta}"
+        );
         assert!((quantile_huber_grad_pred(tau, delta, kappa) - grad).abs() < 1e-6);
         // through the batched loss: one sample, one tau, one target
         let pred = 1.25f32;
@@ -32,7 +35,10 @@ fn quantile_huber_matches_hand_values() {
         let h = 1e-3 * kappa.min(1.0);
         let f = |p: f32| quantile_huber_loss(&[p], &[tau], &[pred + delta], kappa, &mut [0.0]);
         let numeric = (f(pred + h) - f(pred - h)) / (2.0 * h);
-        assert!((numeric - grad).abs() < 2e-2 * grad.abs().max(0.01), "fd {numeric} vs {grad}");
+        assert!(
+            (numeric - grad).abs() < 2e-2 * grad.abs().max(0.01),
+            "fd {numeric} vs {grad}"
+        );
     }
     assert_eq!(huber(0.0, 1.0), 0.0);
 }
@@ -95,4 +101,44 @@ proptest! {
         let neutral = Distortion::Cvar { eta: 1.0 }.value_of(q, 64);
         prop_assert!(v_hi <= neutral + 1e-4, "CVaR_{hi} = {v_hi} > mean {neutral}");
     }
+}
+
+#[test]
+fn batched_loss_at_default_shapes_is_fast_and_consistent() {
+    // B = 1536, N = N' = 64 as one PPO mini-batch; compare with the pointwise sum on a few rows
+    let (b, n, nt) = (1536, 64, 64);
+    let taus: Vec<f32> = (0..n).map(|i| (i as f32 + 0.5) / n as f32).collect();
+    let pred: Vec<f32> = (0..b * n)
+        .map(|i| ((i * 7919) % 1000) as f32 / 100.0 - 5.0)
+        .collect();
+    let targets: Vec<f32> = (0..b * nt)
+        .map(|i| ((i * 104_729) % 1000) as f32 / 50.0 - 10.0)
+        .collect();
+    let mut grad = vec![0.0; b * n];
+    let mut loss = 0.0;
+    let mut best = std::time::Duration::MAX;
+    for _ in 0..5 {
+        let t = std::time::Instant::now();
+        loss = quantile_huber_loss(&pred, &taus, &targets, 1.0, &mut grad);
+        best = best.min(t.elapsed());
+    }
+    eprintln!("quantile Huber loss, 1536 x 64 x 64: {best:?}");
+    let mut want = 0.0f64;
+    for r in 0..b {
+        for i in 0..n {
+            let mut g = 0.0f64;
+            for j in 0..nt {
+                let d = targets[r * nt + j] - pred[r * n + i];
+                want += quantile_huber(taus[i], d, 1.0) as f64;
+                g += quantile_huber_grad_pred(taus[i], d, 1.0) as f64;
+            }
+            let g = g / (b * nt) as f64;
+            assert!(
+                (grad[r * n + i] as f64 - g).abs() < 1e-6 * g.abs().max(1e-3),
+                "row {r} tau {i}"
+            );
+        }
+    }
+    let want = want / (b * nt) as f64;
+    assert!((loss as f64 - want).abs() < 1e-4 * want, "{loss} vs {want}");
 }

@@ -42,7 +42,12 @@ pub struct ActorCritic {
 }
 
 impl ActorCritic {
-    pub fn new(actor: GaussianActor, critic: Critic, distortion: Distortion, num_value_taus: usize) -> Self {
+    pub fn new(
+        actor: GaussianActor,
+        critic: Critic,
+        distortion: Distortion,
+        num_value_taus: usize,
+    ) -> Self {
         ActorCritic {
             actor,
             critic,
@@ -60,7 +65,7 @@ impl ActorCritic {
     fn rows(&self, obs: &[f32]) -> usize {
         let d = self.obs_dim();
         assert!(
-            obs.len() % d == 0,
+            obs.len().is_multiple_of(d),
             "observation slice of {} values is not a multiple of obs_dim {d}",
             obs.len()
         );
@@ -123,7 +128,9 @@ impl ActorCritic {
             Critic::Iqn(c) => {
                 let k = self.value_taus.len();
                 let z = c.quantiles(obs, n, &self.value_taus);
-                z.chunks_exact(k).map(|r| r.iter().sum::<f32>() / k as f32).collect()
+                z.chunks_exact(k)
+                    .map(|r| r.iter().sum::<f32>() / k as f32)
+                    .collect()
             }
             Critic::Scalar(c) => c.values(obs, n),
         }

@@ -43,7 +43,14 @@ impl AdamState {
 
     /// One update `p -= lr * mhat / (sqrt(vhat) + eps)`; `step` is the 1-based
     /// step count (shared by all parameter vectors of one optimizer).
-    pub fn step(&mut self, cfg: &AdamConfig, lr: f32, step: u64, params: &mut [f32], grads: &[f32]) {
+    pub fn step(
+        &mut self,
+        cfg: &AdamConfig,
+        lr: f32,
+        step: u64,
+        params: &mut [f32],
+        grads: &[f32],
+    ) {
         assert!(params.len() == self.m.len() && grads.len() == self.m.len());
         let bc1 = 1.0 - (cfg.beta1 as f64).powi(step as i32);
         let bc2 = 1.0 - (cfg.beta2 as f64).powi(step as i32);
@@ -85,6 +92,9 @@ mod tests {
             let g = vec![2.0 * (p[0] - 1.0), 2.0 * (p[1] + 0.5)];
             st.step(&cfg, 0.01, t, &mut p, &g);
         }
-        assert!((p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2, "{p:?}");
+        assert!(
+            (p[0] - 1.0).abs() < 1e-2 && (p[1] + 0.5).abs() < 1e-2,
+            "{p:?}"
+        );
     }
 }

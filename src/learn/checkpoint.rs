@@ -16,7 +16,11 @@ fn tmp_path(path: &Path) -> PathBuf {
 }
 
 /// Writes `tensors` and `metadata` to `path` atomically.
-pub fn save_checkpoint(path: &Path, tensors: &[NamedTensor], metadata: &HashMap<String, String>) -> Result<()> {
+pub fn save_checkpoint(
+    path: &Path,
+    tensors: &[NamedTensor],
+    metadata: &HashMap<String, String>,
+) -> Result<()> {
     let bytes: Vec<Vec<u8>> = tensors
         .iter()
         .map(|t| t.data.iter().flat_map(|v| v.to_le_bytes()).collect())
@@ -52,10 +56,16 @@ pub fn save_checkpoint(path: &Path, tensors: &[NamedTensor], metadata: &HashMap<
 /// Reads a checkpoint written by [`save_checkpoint`]: tensors (in file order) and
 /// metadata. Any malformed or truncated file is an error naming the path.
 pub fn load_checkpoint(path: &Path) -> Result<(Vec<NamedTensor>, HashMap<String, String>)> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
+    let bytes =
+        std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
-        .with_context(|| format!("checkpoint {} is not a valid safetensors file", path.display()))?;
+        .with_context(|| {
+            format!(
+                "checkpoint {} is not a valid safetensors file",
+                path.display()
+            )
+        })?;
     let (_, meta) = SafeTensors::read_metadata(&bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
         .with_context(|| format!("checkpoint {}: bad header", path.display()))?;

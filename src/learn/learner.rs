@@ -75,20 +75,33 @@ impl Default for LearnerConfig {
 impl LearnerConfig {
     /// The distortion the actor follows (`distortion`, else `CVaR_cvar_eta`).
     pub fn distortion(&self) -> Distortion {
-        self.distortion.unwrap_or(Distortion::Cvar { eta: self.cvar_eta })
+        self.distortion
+            .unwrap_or(Distortion::Cvar { eta: self.cvar_eta })
     }
 
     pub fn validate(&self) -> Result<()> {
         self.distortion().validate()?;
-        ensure!(!self.critic_hidden.is_empty(), "critic_hidden must not be empty");
         ensure!(
-            self.num_cos > 0 && self.num_taus > 0 && self.num_target_taus > 0 && self.num_value_taus > 0,
+            !self.critic_hidden.is_empty(),
+            "critic_hidden must not be empty"
+        );
+        ensure!(
+            self.num_cos > 0
+                && self.num_taus > 0
+                && self.num_target_taus > 0
+                && self.num_value_taus > 0,
             "num_cos, num_taus, num_target_taus and num_value_taus must be positive"
         );
         ensure!(self.kappa > 0.0, "kappa must be positive");
         ensure!(self.init_noise_std > 0.0, "init_noise_std must be positive");
-        ensure!((0.0..=1.0).contains(&self.target_lambda), "target_lambda must be in [0, 1]");
-        ensure!(self.ppo.num_mini_batches > 0, "num_mini_batches must be positive");
+        ensure!(
+            (0.0..=1.0).contains(&self.target_lambda),
+            "target_lambda must be in [0, 1]"
+        );
+        ensure!(
+            self.ppo.num_mini_batches > 0,
+            "num_mini_batches must be positive"
+        );
         Ok(())
     }
 }
@@ -113,12 +126,28 @@ impl Learner {
     /// Builds the networks from `seed` (ChaCha8): same seed, same weights.
     pub fn new(obs_dim: usize, act_dim: usize, cfg: &LearnerConfig, seed: u64) -> Result<Self> {
         cfg.validate()?;
-        ensure!(obs_dim > 0 && act_dim > 0, "obs_dim and act_dim must be positive");
+        ensure!(
+            obs_dim > 0 && act_dim > 0,
+            "obs_dim and act_dim must be positive"
+        );
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let actor = GaussianActor::new(obs_dim, act_dim, &cfg.actor_hidden, cfg.init_noise_std, &mut rng);
+        let actor = GaussianActor::new(
+            obs_dim,
+            act_dim,
+            &cfg.actor_hidden,
+            cfg.init_noise_std,
+            &mut rng,
+        );
         let critic = match cfg.critic {
-            CriticKind::Iqn => Critic::Iqn(IqnCritic::new(obs_dim, &cfg.critic_hidden, cfg.num_cos, &mut rng)),
-            CriticKind::Scalar => Critic::Scalar(ScalarCritic::new(obs_dim, &cfg.critic_hidden, &mut rng)),
+            CriticKind::Iqn => Critic::Iqn(IqnCritic::new(
+                obs_dim,
+                &cfg.critic_hidden,
+                cfg.num_cos,
+                &mut rng,
+            )),
+            CriticKind::Scalar => {
+                Critic::Scalar(ScalarCritic::new(obs_dim, &cfg.critic_hidden, &mut rng))
+            }
         };
         let opt = Optimizer {
             actor: AdamState::new(actor.params.len()),
@@ -182,7 +211,14 @@ impl Learner {
             kappa: self.cfg.kappa,
             target_lambda: self.cfg.target_lambda,
         };
-        ppo::update(&mut self.ac, &mut self.opt, rollout, &self.cfg.ppo, &ccfg, &mut self.rng)
+        ppo::update(
+            &mut self.ac,
+            &mut self.opt,
+            rollout,
+            &self.cfg.ppo,
+            &ccfg,
+            &mut self.rng,
+        )
     }
 
     /// Everything needed to resume: weights (`actor.*`, `critic.*`), Adam moments
@@ -227,7 +263,11 @@ impl Learner {
         let mut picked = Vec::with_capacity(expected.len());
         for e in &expected {
             let Some(t) = find(&e.name) else {
-                bail!("checkpoint is missing tensor `{}` (expected shape {:?})", e.name, e.shape);
+                bail!(
+                    "checkpoint is missing tensor `{}` (expected shape {:?})",
+                    e.name,
+                    e.shape
+                );
             };
             if t.shape != e.shape || t.data.len() != e.data.len() {
                 bail!(

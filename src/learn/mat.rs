@@ -37,8 +37,16 @@ pub fn gemm(
         }
         return;
     }
-    let (a_rs, a_cs) = if a_t { (1, m as isize) } else { (k as isize, 1) };
-    let (b_rs, b_cs) = if b_t { (1, k as isize) } else { (n as isize, 1) };
+    let (a_rs, a_cs) = if a_t {
+        (1, m as isize)
+    } else {
+        (k as isize, 1)
+    };
+    let (b_rs, b_cs) = if b_t {
+        (1, k as isize)
+    } else {
+        (n as isize, 1)
+    };
     // SAFETY: the asserts above bound every index the strides can reach:
     // a: max (m-1)*a_rs + (k-1)*a_cs < m*k, same for b and c; `c` is exclusive.
     unsafe {
@@ -137,7 +145,10 @@ mod tests {
         let mut x = -80.0f32;
         while x <= 0.0 {
             let (a, b) = (exp_nonpos(x), x.exp());
-            assert!((a - b).abs() <= 2e-7 * (1.0 - x) * b + 1e-30, "x={x} {a} {b}");
+            assert!(
+                (a - b).abs() <= 2e-7 * (1.0 - x) * b + 1e-30,
+                "x={x} {a} {b}"
+            );
             x += 0.013;
         }
         assert_eq!(exp_nonpos(0.0), 1.0);

@@ -58,7 +58,9 @@ impl ParamSet {
         let w = self.add(&format!("{name}.weight"), &[inp, out], || {
             rng.gen_range(-bound..bound)
         });
-        let b = self.add(&format!("{name}.bias"), &[out], || rng.gen_range(-bound..bound));
+        let b = self.add(&format!("{name}.bias"), &[out], || {
+            rng.gen_range(-bound..bound)
+        });
         Linear { w, b, inp, out }
     }
 
@@ -99,11 +101,31 @@ impl Linear {
         want_dx: bool,
     ) -> Option<Vec<f32>> {
         let (inp, out) = (self.inp, self.out);
-        gemm(inp, out, batch, x, true, dy, false, &mut g[self.w..self.w + inp * out], true);
+        gemm(
+            inp,
+            out,
+            batch,
+            x,
+            true,
+            dy,
+            false,
+            &mut g[self.w..self.w + inp * out],
+            true,
+        );
         add_col_sums(dy, &mut g[self.b..self.b + out]);
         want_dx.then(|| {
             let mut dx = vec![0.0; batch * inp];
-            gemm(batch, inp, out, dy, false, &p[self.w..self.w + inp * out], true, &mut dx, false);
+            gemm(
+                batch,
+                inp,
+                out,
+                dy,
+                false,
+                &p[self.w..self.w + inp * out],
+                true,
+                &mut dx,
+                false,
+            );
             dx
         })
     }
@@ -173,6 +195,7 @@ impl Mlp {
 
     /// Backward pass from `dout` (`batch x out`), accumulating into `g`.
     /// Returns d/dx only if `want_dx`.
+    #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
         p: &[f32],
@@ -294,7 +317,14 @@ impl ScalarCritic {
     }
 
     /// Accumulate gradients from d loss / d V (`batch`).
-    pub fn backward(&self, grads: &mut [f32], obs: &[f32], batch: usize, cache: &MlpCache, dv: Vec<f32>) {
+    pub fn backward(
+        &self,
+        grads: &mut [f32],
+        obs: &[f32],
+        batch: usize,
+        cache: &MlpCache,
+        dv: Vec<f32>,
+    ) {
         self.mlp
             .backward(&self.params.data, grads, obs, batch, cache, dv, false);
     }
@@ -331,7 +361,10 @@ pub struct IqnCache {
 impl IqnCritic {
     /// `hidden`: trunk sizes (e.g. `[512, 256, 128]`); `num_cos`: cosine basis size (64).
     pub fn new(obs_dim: usize, hidden: &[usize], num_cos: usize, rng: &mut impl Rng) -> Self {
-        assert!(!hidden.is_empty(), "IQN critic needs at least one hidden layer");
+        assert!(
+            !hidden.is_empty(),
+            "IQN critic needs at least one hidden layer"
+        );
         let mut params = ParamSet::default();
         let dims: Vec<usize> = [&[obs_dim][..], hidden].concat();
         let trunk = Mlp::build(&mut params, "trunk.", &dims, true, rng);
@@ -350,7 +383,13 @@ impl IqnCritic {
     }
 
     /// `Z_tau(s)` for every observation and tau: returns `batch x taus.len()`.
-    pub fn forward(&self, obs: &[f32], batch: usize, taus: &[f32], cache: &mut IqnCache) -> Vec<f32> {
+    pub fn forward(
+        &self,
+        obs: &[f32],
+        batch: usize,
+        taus: &[f32],
+        cache: &mut IqnCache,
+    ) -> Vec<f32> {
         let p = &self.params.data;
         let (n, f) = (taus.len(), self.feat);
         self.trunk.forward(p, obs, batch, &mut cache.trunk);
@@ -368,7 +407,17 @@ impl IqnCritic {
             cache.g.extend(row.iter().zip(w).map(|(e, w)| e * w));
         }
         let mut z = vec![p[self.head_b]; batch * n];
-        gemm(batch, n, f, cache.trunk.output(), false, &cache.g, true, &mut z, true);
+        gemm(
+            batch,
+            n,
+            f,
+            cache.trunk.output(),
+            false,
+            &cache.g,
+            true,
+            &mut z,
+            true,
+        );
         z
     }
 
@@ -378,7 +427,14 @@ impl IqnCritic {
     }
 
     /// Accumulate gradients from d loss / d Z (`batch x N`).
-    pub fn backward(&self, grads: &mut [f32], obs: &[f32], batch: usize, cache: &IqnCache, dz: &[f32]) {
+    pub fn backward(
+        &self,
+        grads: &mut [f32],
+        obs: &[f32],
+        batch: usize,
+        cache: &IqnCache,
+        dz: &[f32],
+    ) {
         let p = &self.params.data;
         let f = self.feat;
         let n = cache.g.len() / f;
@@ -394,11 +450,16 @@ impl IqnCritic {
             for k in 0..f {
                 gw[k] += dg_row[k] * e_row[k];
                 // d pre-ReLU embedding
-                dg_row[k] = if e_row[k] > 0.0 { dg_row[k] * w[k] } else { 0.0 };
+                dg_row[k] = if e_row[k] > 0.0 {
+                    dg_row[k] * w[k]
+                } else {
+                    0.0
+                };
             }
         }
         self.embed.backward(p, grads, &cache.cos, n, &dg, false);
-        self.trunk.backward(p, grads, obs, batch, &cache.trunk, dphi, false);
+        self.trunk
+            .backward(p, grads, obs, batch, &cache.trunk, dphi, false);
     }
 }
 
@@ -455,7 +516,10 @@ mod tests {
             let mut act = actor.clone();
             act.params = ps.clone();
             let m = act.mean(&obs, b);
-            m.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+            m.iter()
+                .zip(&c)
+                .map(|(m, c)| (*m as f64) * (*c as f64))
+                .sum()
         };
         check_grads(&mut ps, &loss, &g, 60);
         actor.params = ps;
@@ -478,7 +542,10 @@ mod tests {
             let mut cr = critic.clone();
             cr.params = ps.clone();
             let z = cr.quantiles(&obs, b, &taus);
-            z.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+            z.iter()
+                .zip(&c)
+                .map(|(m, c)| (*m as f64) * (*c as f64))
+                .sum()
         };
         check_grads(&mut ps, &loss, &g, 120);
     }
@@ -499,7 +566,10 @@ mod tests {
             let mut cr = critic.clone();
             cr.params = ps.clone();
             let v = cr.values(&obs, b);
-            v.iter().zip(&c).map(|(m, c)| (*m as f64) * (*c as f64)).sum()
+            v.iter()
+                .zip(&c)
+                .map(|(m, c)| (*m as f64) * (*c as f64))
+                .sum()
         };
         check_grads(&mut ps, &loss, &g, 60);
     }

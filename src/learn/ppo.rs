@@ -140,7 +140,11 @@ fn targets(
     ccfg: &CriticLossConfig,
     rng: &mut impl Rng,
 ) -> Targets {
-    let finals: Vec<f32> = r.final_obs.iter().flat_map(|(_, o)| o.iter().copied()).collect();
+    let finals: Vec<f32> = r
+        .final_obs
+        .iter()
+        .flat_map(|(_, o)| o.iter().copied())
+        .collect();
     match &ac.critic {
         Critic::Scalar(c) => {
             let v = |o: &[f32]| c.values(o, o.len() / r.obs_dim);
@@ -157,7 +161,12 @@ fn targets(
             // one trunk pass per state: the value grid and the target grid together
             let k = ac.value_taus.len();
             let nt = ccfg.num_target_taus;
-            let taus: Vec<f32> = ac.value_taus.iter().copied().chain(midpoint_taus(nt)).collect();
+            let taus: Vec<f32> = ac
+                .value_taus
+                .iter()
+                .copied()
+                .chain(midpoint_taus(nt))
+                .collect();
             let split = |o: &[f32]| {
                 let z = c.quantiles(o, o.len() / r.obs_dim, &taus);
                 let mut v = Vec::with_capacity(z.len() / (k + nt));
@@ -174,7 +183,8 @@ fn targets(
             let next = next_values(r, 1, &values, &last_v, &fin_v);
             let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
             let next_z = next_values(r, nt, &z, &last_z, &fin_z);
-            let value_targets = quantile_targets(r, &next_z, nt, cfg.gamma, ccfg.target_lambda, rng);
+            let value_targets =
+                quantile_targets(r, &next_z, nt, cfg.gamma, ccfg.target_lambda, rng);
             Targets { adv, value_targets }
         }
     }
@@ -240,8 +250,8 @@ pub fn update(
             for i in 0..b * ad {
                 let (s_new, s_old) = (std[i % ad], old_std[i]);
                 let dm = old_mu[i] - mu[i];
-                kl += ((s_new / s_old).ln() + (s_old * s_old + dm * dm) / (2.0 * s_new * s_new) - 0.5)
-                    as f64;
+                kl += ((s_new / s_old).ln() + (s_old * s_old + dm * dm) / (2.0 * s_new * s_new)
+                    - 0.5) as f64;
             }
             let kl = (kl / b as f64) as f32;
             if cfg.schedule == LrSchedule::Adaptive {
@@ -273,7 +283,11 @@ pub fn update(
                     clipped += 1;
                 }
                 // d L_s / d logp: the unclipped branch carries the gradient when it is the max
-                let g = if unclipped >= clip { -a * ratio / b as f32 } else { 0.0 };
+                let g = if unclipped >= clip {
+                    -a * ratio / b as f32
+                } else {
+                    0.0
+                };
                 if g != 0.0 {
                     for j in 0..ad {
                         let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
@@ -328,13 +342,26 @@ pub fn update(
                 .sqrt() as f32;
             if norm > cfg.max_grad_norm {
                 let s = cfg.max_grad_norm / (norm + 1e-6);
-                g_actor.iter_mut().chain(g_critic.iter_mut()).for_each(|g| *g *= s);
+                g_actor
+                    .iter_mut()
+                    .chain(g_critic.iter_mut())
+                    .for_each(|g| *g *= s);
             }
             opt.step += 1;
-            opt.actor
-                .step(&cfg.adam, opt.lr, opt.step, &mut ac.actor.params.data, &g_actor);
-            opt.critic
-                .step(&cfg.adam, opt.lr, opt.step, &mut ac.critic.params_mut().data, &g_critic);
+            opt.actor.step(
+                &cfg.adam,
+                opt.lr,
+                opt.step,
+                &mut ac.actor.params.data,
+                &g_actor,
+            );
+            opt.critic.step(
+                &cfg.adam,
+                opt.lr,
+                opt.step,
+                &mut ac.critic.params_mut().data,
+                &g_critic,
+            );
 
             stats.policy_loss += (pol_loss / b as f64) as f32;
             stats.value_loss += value_loss;

@@ -138,8 +138,17 @@ impl Rollout {
         final_obs: &[f32],
     ) -> Result<()> {
         let (e, o, a) = (self.num_envs, self.obs_dim, self.act_dim);
-        ensure!(self.step < self.num_steps, "rollout is full ({} steps)", self.num_steps);
-        ensure!(obs.len() == e * o, "obs: expected {} values, got {}", e * o, obs.len());
+        ensure!(
+            self.step < self.num_steps,
+            "rollout is full ({} steps)",
+            self.num_steps
+        );
+        ensure!(
+            obs.len() == e * o,
+            "obs: expected {} values, got {}",
+            e * o,
+            obs.len()
+        );
         ensure!(
             act.actions.len() == e * a
                 && act.action_mean.len() == e * a
@@ -179,7 +188,10 @@ impl Rollout {
 
     /// Sets the observation after the last step (`E x obs_dim`).
     pub fn set_last_obs(&mut self, obs: &[f32]) -> Result<()> {
-        ensure!(obs.len() == self.num_envs * self.obs_dim, "last_obs: wrong length");
+        ensure!(
+            obs.len() == self.num_envs * self.obs_dim,
+            "last_obs: wrong length"
+        );
         self.last_obs = obs.to_vec();
         Ok(())
     }
@@ -210,7 +222,13 @@ impl Rollout {
 /// the rollout end, `finals[k]` (the k-th entry of `final_obs`) on a time-out,
 /// zeros on a termination. `cur`: `[T x E x width]`, `last`: `[E x width]`,
 /// `finals`: `[final_obs.len() x width]`.
-pub fn next_values(r: &Rollout, width: usize, cur: &[f32], last: &[f32], finals: &[f32]) -> Vec<f32> {
+pub fn next_values(
+    r: &Rollout,
+    width: usize,
+    cur: &[f32],
+    last: &[f32],
+    finals: &[f32],
+) -> Vec<f32> {
     let (t_n, e_n) = (r.num_steps, r.num_envs);
     assert_eq!(cur.len(), t_n * e_n * width);
     assert_eq!(last.len(), e_n * width);
