@@ -16,3 +16,7 @@ pub mod learn;
 
 #[cfg(feature = "sim")]
 pub mod cli;
+#[cfg(feature = "sim")]
+pub mod config;
+#[cfg(feature = "sim")]
+pub mod runner;

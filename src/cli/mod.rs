@@ -1,6 +1,7 @@
 //! The `rall` command line (clap). Each subcommand lives in its own file.
 
 pub mod inspect;
+pub mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -19,10 +20,13 @@ pub struct Cli {
 pub enum Command {
     /// Print a model's bodies, joints, actuators and mass, and check that the robot stands under PD.
     Inspect(inspect::InspectArgs),
+    /// Train a policy (CVaR-PPO with an IQN critic, or the scalar baseline).
+    Train(train::TrainArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Inspect(args) => inspect::run(&args),
+        Command::Train(args) => train::run(&args),
     }
 }

@@ -1,0 +1,89 @@
+//! The one TOML file of a training run: `[env]`, `[learner]`, `[runner]`.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use serde::{Deserialize, Serialize};
+
+use crate::env::EnvConfig;
+use crate::learn::LearnerConfig;
+
+/// The training loop's own settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunnerConfig {
+    /// Parallel environments (robots).
+    pub num_envs: usize,
+    /// Policy steps per env per iteration (rsl_rl: 24).
+    pub steps_per_env: usize,
+    /// Iterations to train (a resumed run continues up to this number).
+    pub iterations: usize,
+    /// Write a checkpoint every this many iterations.
+    pub save_interval: usize,
+    /// Print a log line every this many iterations.
+    pub log_interval: usize,
+    /// Env worker threads (0 = all cores).
+    pub threads: usize,
+    pub seed: u64,
+    /// Parent folder of run directories.
+    pub runs_dir: String,
+}
+
+impl Default for RunnerConfig {
+    fn default() -> Self {
+        RunnerConfig {
+            num_envs: 256,
+            steps_per_env: 24,
+            iterations: 1500,
+            save_interval: 50,
+            log_interval: 10,
+            threads: 0,
+            seed: 1,
+            runs_dir: "runs".into(),
+        }
+    }
+}
+
+/// Everything a run needs; saved in every checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    pub env: EnvConfig,
+    pub learner: LearnerConfig,
+    pub runner: RunnerConfig,
+}
+
+impl TrainConfig {
+    /// Reads and validates a TOML file; errors name the file and the key.
+    pub fn from_toml_file(path: &Path) -> Result<TrainConfig> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading config {}", path.display()))?;
+        TrainConfig::from_toml_str(&text).with_context(|| format!("config {}", path.display()))
+    }
+
+    pub fn from_toml_str(text: &str) -> Result<TrainConfig> {
+        let cfg: TrainConfig = toml::from_str(text).map_err(|e| anyhow::anyhow!("{e}"))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# config not serialisable: {e}"))
+    }
+
+    /// Refuses impossible values, naming the key.
+    pub fn validate(&self) -> Result<()> {
+        self.env.validate().map_err(|e| anyhow::anyhow!("invalid [env] value: {e}"))?;
+        self.learner.validate().context("invalid [learner] value")?;
+        let r = &self.runner;
+        anyhow::ensure!(r.num_envs > 0, "invalid [runner] value: runner.num_envs must be at least 1");
+        anyhow::ensure!(r.steps_per_env > 0, "invalid [runner] value: runner.steps_per_env must be at least 1");
+        anyhow::ensure!(r.save_interval > 0, "invalid [runner] value: runner.save_interval must be at least 1");
+        anyhow::ensure!(r.log_interval > 0, "invalid [runner] value: runner.log_interval must be at least 1");
+        let batch = r.num_envs * r.steps_per_env;
+        anyhow::ensure!(
+            batch >= self.learner.ppo.num_mini_batches,
+            "invalid [runner] value: num_envs x steps_per_env = {batch} is smaller than learner.ppo.num_mini_batches"
+        );
+        Ok(())
+    }
+}

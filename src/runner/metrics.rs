@@ -1,0 +1,163 @@
+//! Per-iteration metrics: aggregated from finished episodes and the update,
+//! appended to `metrics.csv`.
+
+use std::fs::{File, OpenOptions};
+use std::io::{BufWriter, Write};
+use std::path::Path;
+
+use anyhow::{Context, Result};
+
+use crate::env::reward::{NUM_REWARD_TERMS, REWARD_TERM_NAMES};
+use crate::env::risk::{NUM_RISK_TERMS, RISK_TERM_NAMES};
+use crate::env::{EpisodeEnd, EpisodeSummary};
+use crate::learn::UpdateStats;
+
+/// Means over the episodes that finished in one iteration.
+#[derive(Debug, Clone, Default)]
+pub struct EpisodeStats {
+    pub episodes: usize,
+    pub mean_return: f64,
+    pub mean_length_steps: f64,
+    /// Mean per-step linear-velocity tracking score exp(-err^2/sigma) in [0, 1].
+    pub lin_tracking_score: f64,
+    pub falls: usize,
+    pub reward_terms: [f64; NUM_REWARD_TERMS],
+}
+
+impl EpisodeStats {
+    /// `lin_weight_dt` = lin_vel_tracking weight x policy dt (to undo the scaling).
+    pub fn from_episodes(eps: &[EpisodeSummary], lin_weight_dt: f64) -> EpisodeStats {
+        let mut s = EpisodeStats { episodes: eps.len(), ..Default::default() };
+        if eps.is_empty() {
+            return s;
+        }
+        let n = eps.len() as f64;
+        let mut tracking_sum = 0.0;
+        let mut steps = 0.0;
+        for e in eps {
+            s.mean_return += e.total_reward / n;
+            s.mean_length_steps += e.steps as f64 / n;
+            tracking_sum += e.reward_terms[0];
+            steps += e.steps as f64;
+            s.falls += (e.end != EpisodeEnd::TimeOut) as usize;
+            for (t, v) in s.reward_terms.iter_mut().zip(&e.reward_terms) {
+                *t += v / n;
+            }
+        }
+        if steps > 0.0 && lin_weight_dt != 0.0 {
+            s.lin_tracking_score = tracking_sum / lin_weight_dt / steps;
+        }
+        s
+    }
+}
+
+/// One CSV row.
+pub struct IterationRow<'a> {
+    pub iteration: usize,
+    pub wall_s: f64,
+    pub total_env_steps: u64,
+    /// Env steps collected in this iteration.
+    pub iteration_env_steps: u64,
+    pub collect_s: f64,
+    pub learn_s: f64,
+    pub episodes: &'a EpisodeStats,
+    pub update: &'a UpdateStats,
+    pub terrain_level: f64,
+    pub risk_exceeded: &'a [u64; NUM_RISK_TERMS],
+    pub risk_fired: &'a [u64; NUM_RISK_TERMS],
+    pub instabilities: u64,
+}
+
+pub struct MetricsCsv {
+    out: BufWriter<File>,
+}
+
+fn header() -> String {
+    let mut cols: Vec<String> = [
+        "iteration",
+        "wall_s",
+        "total_env_steps",
+        "collect_s",
+        "learn_s",
+        "env_steps_per_s",
+        "episodes",
+        "mean_return",
+        "mean_episode_length",
+        "lin_tracking_score",
+        "fall_fraction",
+        "terrain_level",
+        "policy_loss",
+        "value_loss",
+        "entropy",
+        "approx_kl",
+        "learning_rate",
+        "mean_std",
+        "clip_fraction",
+        "grad_norm",
+        "instabilities",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    cols.extend(REWARD_TERM_NAMES.iter().map(|n| format!("rew_{n}")));
+    cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_exceeded_{n}")));
+    cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_fired_{n}")));
+    cols.join(",")
+}
+
+impl MetricsCsv {
+    /// Opens `path` for appending (a resumed run keeps its history), writing the header if new.
+    pub fn open(path: &Path) -> Result<MetricsCsv> {
+        let is_new = !path.exists() || std::fs::metadata(path).map(|m| m.len() == 0).unwrap_or(true);
+        let f = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .with_context(|| format!("opening {}", path.display()))?;
+        let mut out = BufWriter::new(f);
+        if is_new {
+            writeln!(out, "{}", header())?;
+        }
+        Ok(MetricsCsv { out })
+    }
+
+    pub fn write(&mut self, r: &IterationRow) -> Result<()> {
+        let e = r.episodes;
+        let u = r.update;
+        let elapsed = r.collect_s + r.learn_s;
+        let steps_per_s = if elapsed > 0.0 { r.iteration_env_steps as f64 / elapsed } else { 0.0 };
+        let mut row = format!(
+            "{},{:.3},{},{:.4},{:.4},{:.1},{},{:.5},{:.2},{:.5},{:.4},{:.3},{:.6},{:.6},{:.5},{:.6},{:.3e},{:.5},{:.4},{:.4},{}",
+            r.iteration,
+            r.wall_s,
+            r.total_env_steps,
+            r.collect_s,
+            r.learn_s,
+            steps_per_s,
+            e.episodes,
+            e.mean_return,
+            e.mean_length_steps,
+            e.lin_tracking_score,
+            if e.episodes > 0 { e.falls as f64 / e.episodes as f64 } else { 0.0 },
+            r.terrain_level,
+            u.policy_loss,
+            u.value_loss,
+            u.entropy,
+            u.approx_kl,
+            u.learning_rate,
+            u.mean_std,
+            u.clip_fraction,
+            u.grad_norm,
+            r.instabilities,
+        );
+        for t in &e.reward_terms {
+            row.push_str(&format!(",{t:.6}"));
+        }
+        for v in r.risk_exceeded.iter().chain(r.risk_fired) {
+            row.push_str(&format!(",{v}"));
+        }
+        writeln!(self.out, "{row}")?;
+        self.out.flush()?;
+        Ok(())
+    }
+}

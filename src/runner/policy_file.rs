@@ -1,0 +1,110 @@
+//! Checkpoint files of a run: learner state + runner state + metadata
+//! (config, observation layout, version). Written atomically by `learn::checkpoint`.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+
+use crate::config::TrainConfig;
+use crate::env::observation::layout_string;
+use crate::env::{ACT_DIM, OBS_DIM};
+use crate::learn::{load_checkpoint, save_checkpoint, Learner};
+
+/// Bumped when the file layout changes incompatibly.
+pub const FORMAT_VERSION: &str = "1";
+
+/// Runner progress stored next to the learner state.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Progress {
+    /// Iterations completed.
+    pub iteration: usize,
+    pub total_env_steps: u64,
+    pub wall_s: f64,
+    /// Action-sampling RNG: seed and position in its stream.
+    pub rng_seed: u64,
+    pub rng_word_pos: u128,
+}
+
+/// Writes `learner` + `progress` + `cfg` to `path` (temp file + rename).
+pub fn save_policy(path: &Path, learner: &Learner, cfg: &TrainConfig, progress: &Progress) -> Result<()> {
+    let mut meta = HashMap::new();
+    meta.insert("format".into(), "rall-checkpoint".into());
+    meta.insert("format_version".into(), FORMAT_VERSION.into());
+    meta.insert("rall_version".into(), env!("CARGO_PKG_VERSION").into());
+    meta.insert("config_toml".into(), cfg.to_toml());
+    meta.insert("obs_layout".into(), layout_string());
+    meta.insert("obs_dim".into(), OBS_DIM.to_string());
+    meta.insert("act_dim".into(), ACT_DIM.to_string());
+    meta.insert("iteration".into(), progress.iteration.to_string());
+    meta.insert("total_env_steps".into(), progress.total_env_steps.to_string());
+    meta.insert("wall_s".into(), format!("{:.3}", progress.wall_s));
+    meta.insert("rng_seed".into(), progress.rng_seed.to_string());
+    meta.insert("rng_word_pos".into(), progress.rng_word_pos.to_string());
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    save_checkpoint(path, &learner.state(), &meta)
+}
+
+/// A loaded checkpoint: the learner (weights, optimiser, lr), its config and progress.
+pub struct LoadedPolicy {
+    pub learner: Learner,
+    pub config: TrainConfig,
+    pub progress: Progress,
+}
+
+fn meta_value<'a>(meta: &'a HashMap<String, String>, key: &str, path: &Path) -> Result<&'a str> {
+    meta.get(key)
+        .map(String::as_str)
+        .with_context(|| format!("{} is not a rall checkpoint: metadata `{key}` is missing", path.display()))
+}
+
+fn meta_parse<T: std::str::FromStr>(meta: &HashMap<String, String>, key: &str, path: &Path) -> Result<T> {
+    let v = meta_value(meta, key, path)?;
+    v.parse()
+        .map_err(|_| anyhow::anyhow!("{}: metadata `{key}` = {v:?} is not a valid number", path.display()))
+}
+
+/// Loads a checkpoint, refusing one whose format, observation layout or
+/// tensor shapes do not match this build.
+pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
+    let (tensors, meta) = load_checkpoint(path)?;
+    let format = meta_value(&meta, "format", path)?;
+    if format != "rall-checkpoint" {
+        bail!("{} is not a rall checkpoint (format {format:?})", path.display());
+    }
+    let version = meta_value(&meta, "format_version", path)?;
+    if version != FORMAT_VERSION {
+        bail!("{}: checkpoint format {version} but this rall reads format {FORMAT_VERSION}", path.display());
+    }
+    let layout = meta_value(&meta, "obs_layout", path)?;
+    if layout != layout_string() {
+        bail!(
+            "{}: observation layout mismatch: the checkpoint was trained on [{layout}] but this rall observes [{}]",
+            path.display(),
+            layout_string()
+        );
+    }
+    let (obs_dim, act_dim): (usize, usize) = (meta_parse(&meta, "obs_dim", path)?, meta_parse(&meta, "act_dim", path)?);
+    if obs_dim != OBS_DIM || act_dim != ACT_DIM {
+        bail!(
+            "{}: checkpoint has obs {obs_dim} / actions {act_dim}, this rall needs {OBS_DIM} / {ACT_DIM}",
+            path.display()
+        );
+    }
+    let config = TrainConfig::from_toml_str(meta_value(&meta, "config_toml", path)?)
+        .with_context(|| format!("{}: the stored config", path.display()))?;
+    let progress = Progress {
+        iteration: meta_parse(&meta, "iteration", path)?,
+        total_env_steps: meta_parse(&meta, "total_env_steps", path)?,
+        wall_s: meta_parse(&meta, "wall_s", path)?,
+        rng_seed: meta_parse(&meta, "rng_seed", path)?,
+        rng_word_pos: meta_parse(&meta, "rng_word_pos", path)?,
+    };
+    let mut learner = Learner::new(OBS_DIM, ACT_DIM, &config.learner, config.runner.seed)?;
+    learner
+        .load_state(&tensors)
+        .with_context(|| format!("{} does not match the network in its own config", path.display()))?;
+    Ok(LoadedPolicy { learner, config, progress })
+}
