@@ -8,6 +8,8 @@
 #[cfg(feature = "sim")]
 pub mod env;
 #[cfg(feature = "sim")]
+pub mod eval;
+#[cfg(feature = "sim")]
 pub mod robot;
 #[cfg(feature = "sim")]
 pub mod sim;

@@ -1,5 +1,6 @@
 //! The `rall` command line (clap). Each subcommand lives in its own file.
 
+pub mod eval;
 pub mod inspect;
 pub mod train;
 
@@ -22,11 +23,14 @@ pub enum Command {
     Inspect(inspect::InspectArgs),
     /// Train a policy (CVaR-PPO with an IQN critic, or the scalar baseline).
     Train(train::TrainArgs),
+    /// Evaluate checkpoints (tracking; robustness benchmarks).
+    Eval(eval::EvalArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Inspect(args) => inspect::run(&args),
         Command::Train(args) => train::run(&args),
+        Command::Eval(args) => eval::run(&args),
     }
 }

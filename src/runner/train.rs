@@ -183,7 +183,7 @@ pub fn train(
             risk_exceeded.iter().sum::<u64>(),
         ));
         if progress.iteration % r.log_interval == 0 || progress.iteration == 1 {
-            bar.println(format!(
+            log_line(&bar, format!(
                 "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | lr {:.1e} | std {:.3} | value loss {:.4}",
                 progress.iteration,
                 progress.wall_s / 60.0,
@@ -208,7 +208,7 @@ pub fn train(
     }
     if interrupted {
         last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
-        bar.println(format!("interrupted: checkpoint written at iteration {}", progress.iteration));
+        log_line(&bar, format!("interrupted: checkpoint written at iteration {}", progress.iteration));
     }
     bar.finish_and_clear();
     Ok(TrainSummary {
@@ -226,6 +226,15 @@ fn save_both(dir: &RunDir, learner: &Learner, cfg: &TrainConfig, progress: &Prog
     save_policy(&numbered, learner, cfg, progress)?;
     save_policy(&dir.latest(), learner, cfg, progress)?;
     Ok(numbered)
+}
+
+/// Prints above the bar on a terminal, plainly otherwise (logs of background runs).
+fn log_line(bar: &ProgressBar, line: String) {
+    if bar.is_hidden() {
+        println!("{line}");
+    } else {
+        bar.println(line);
+    }
 }
 
 fn progress_bar(start: usize, end: usize) -> ProgressBar {

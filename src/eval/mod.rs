@@ -1,0 +1,5 @@
+//! Evaluation: command tracking, and the paper's robustness benchmarks.
+
+pub mod tracking;
+
+pub use tracking::{evaluate_tracking, tracking_env, TrackingReport};

@@ -1,0 +1,163 @@
+//! Issue 4 (runner side): configs, checkpoints, resume, tracking evaluation.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use rall::config::TrainConfig;
+use rall::env::terrain::TerrainKind;
+use rall::env::OBS_DIM;
+use rall::eval::{evaluate_tracking, tracking_env};
+use rall::learn::{load_checkpoint, save_checkpoint, CriticKind};
+use rall::runner::{load_policy, train, LATEST};
+
+/// A run small enough for a test: 8 robots, short episodes, small networks.
+fn tiny_config(critic: CriticKind) -> TrainConfig {
+    let mut c = TrainConfig::default();
+    c.env.robot_mjcf = concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml").into();
+    c.env.terrain.kind = TerrainKind::Flat;
+    c.env.episode.length_s = 0.5;
+    c.learner.critic = critic;
+    c.learner.actor_hidden = vec![32, 32];
+    c.learner.critic_hidden = vec![32, 32];
+    c.learner.num_taus = 8;
+    c.learner.num_target_taus = 8;
+    c.learner.num_value_taus = 8;
+    c.runner.num_envs = 8;
+    c.runner.steps_per_env = 8;
+    c.runner.iterations = 2;
+    c.runner.save_interval = 1;
+    c.runner.threads = 2;
+    c
+}
+
+fn no_stop() -> Arc<AtomicBool> {
+    Arc::new(AtomicBool::new(false))
+}
+
+fn metric_rows(dir: &Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+    text.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect()
+}
+
+#[test]
+fn training_writes_metrics_and_checkpoints_and_resume_continues() {
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let dir = tempfile::tempdir().unwrap();
+        let run = dir.path().join("run");
+        let s = train(tiny_config(critic), &run, false, no_stop(), &mut ()).unwrap();
+        assert_eq!(s.iterations_done, 2);
+        assert!(run.join(LATEST).exists() && run.join("checkpoints/model_000002.safetensors").exists());
+        let rows = metric_rows(&run);
+        assert_eq!(rows.len(), 2);
+        assert_eq!(rows[1][0], "2");
+        assert_eq!(rows[1][2], (2 * 8 * 8).to_string(), "total env steps");
+
+        let before = load_policy(&run.join(LATEST)).unwrap();
+        assert_eq!(before.progress.iteration, 2);
+        let lr_before = before.learner.learning_rate();
+
+        // resume to iteration 3: continues at 3, with the stored lr as its start
+        let mut more = tiny_config(critic);
+        more.runner.iterations = 3;
+        let s = train(more, &run, true, no_stop(), &mut ()).unwrap();
+        assert_eq!(s.iterations_done, 3);
+        let rows = metric_rows(&run);
+        assert_eq!(rows.len(), 3, "metrics appended, not overwritten");
+        assert_eq!(rows[2][0], "3");
+        assert_eq!(rows[2][2], (3 * 8 * 8).to_string());
+        let after = load_policy(&run.join(LATEST)).unwrap();
+        assert_eq!(after.progress.iteration, 3);
+        assert!(after.progress.rng_word_pos > before.progress.rng_word_pos, "action RNG continued");
+        assert!(lr_before > 0.0 && after.learner.learning_rate() > 0.0);
+    }
+}
+
+#[test]
+fn a_saved_policy_loads_with_identical_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    train(tiny_config(CriticKind::Iqn), &run, false, no_stop(), &mut ()).unwrap();
+    let a = load_policy(&run.join(LATEST)).unwrap();
+    let b = load_policy(&run.join("checkpoints/model_000002.safetensors")).unwrap();
+    let obs: Vec<f32> = (0..4 * OBS_DIM).map(|i| ((i * 37) % 17) as f32 / 17.0 - 0.5).collect();
+    assert_eq!(a.learner.act_mean(&obs), b.learner.act_mean(&obs));
+    assert_eq!(a.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9]), b.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9]));
+    assert_eq!(a.config, b.config);
+}
+
+#[test]
+fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    train(tiny_config(CriticKind::Iqn), &run, false, no_stop(), &mut ()).unwrap();
+    let good = run.join(LATEST);
+    let (tensors, meta) = load_checkpoint(&good).unwrap();
+
+    let rewrite = |name: &str, edit: &dyn Fn(&mut HashMap<String, String>)| {
+        let mut m = meta.clone();
+        edit(&mut m);
+        let p = dir.path().join(name);
+        save_checkpoint(&p, &tensors, &m).unwrap();
+        load_policy(&p).err().map(|e| format!("{e:#}")).expect("refused")
+    };
+    let e = rewrite("layout.safetensors", &|m| {
+        m.insert("obs_layout".into(), "base_lin_vel_body:3,height_scan:187".into());
+    });
+    assert!(e.contains("observation layout mismatch"), "{e}");
+    let e = rewrite("version.safetensors", &|m| {
+        m.insert("format_version".into(), "99".into());
+    });
+    assert!(e.contains("format 99"), "{e}");
+    // the config says 64-wide networks but the tensors are 32-wide
+    let e = rewrite("shapes.safetensors", &|m| {
+        let cfg = m["config_toml"].replace("actor_hidden = [\n    32,\n    32,\n]", "actor_hidden = [\n    64,\n    32,\n]");
+        assert_ne!(cfg, m["config_toml"], "test edits the config");
+        m.insert("config_toml".into(), cfg);
+    });
+    assert!(e.contains("shape"), "{e}");
+
+    let bytes = std::fs::read(&good).unwrap();
+    let truncated = dir.path().join("truncated.safetensors");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let e = format!("{:#}", load_policy(&truncated).err().unwrap());
+    assert!(e.contains("truncated.safetensors"), "{e}");
+    let e = format!("{:#}", load_policy(&dir.path().join("missing.safetensors")).err().unwrap());
+    assert!(e.contains("missing.safetensors"), "{e}");
+}
+
+#[test]
+fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
+    for f in ["configs/flat.toml", "configs/rough.toml"] {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(f);
+        TrainConfig::from_toml_file(&p).unwrap_or_else(|e| panic!("{f}: {e:#}"));
+    }
+    let err = |text: &str| format!("{:#}", TrainConfig::from_toml_str(text).unwrap_err());
+    let e = err("[env.risk]\nprobability = -0.1\n");
+    assert!(e.contains("risk.probability"), "{e}");
+    let e = err("[env.terrain]\nkind = \"lava\"\n");
+    assert!(e.contains("lava") && e.contains("kind"), "{e}");
+    let e = err("[env.control]\ntorque_limits_nm = [44.0, 55.0]\n");
+    assert!(e.contains("torque_limits_nm"), "{e}");
+    let e = err("[env.reward]\nlin_vel_trackin = 5.0\n");
+    assert!(e.contains("lin_vel_trackin"), "{e}");
+    let e = err("[runner]\nnum_envs = 0\n");
+    assert!(e.contains("num_envs"), "{e}");
+    let e = err("[env.commands]\nvx_mps = [1.0, -1.0]\n");
+    assert!(e.contains("commands.vx_mps"), "{e}");
+}
+
+#[test]
+fn tracking_evaluation_of_an_untrained_policy_gives_bounded_scores() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    train(tiny_config(CriticKind::Scalar), &run, false, no_stop(), &mut ()).unwrap();
+    let p = load_policy(&run.join(LATEST)).unwrap();
+    let env = tracking_env(&p.config.env);
+    let r = evaluate_tracking(&p.learner, &env, 4, 2, 1).unwrap();
+    assert_eq!(r.episodes, 4);
+    assert!((0.0..=1.0).contains(&r.lin_vel_score) && (0.0..=1.0).contains(&r.yaw_rate_score));
+    assert!((0.0..=1.0).contains(&r.fall_rate));
+    assert!(r.mean_episode_length_steps > 0.0 && r.mean_episode_length_steps <= 25.0);
+}
