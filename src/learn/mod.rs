@@ -45,6 +45,6 @@ pub mod storage;
 pub use actor_critic::{ActorCritic, Critic};
 pub use checkpoint::{load_checkpoint, save_checkpoint};
 pub use learner::{CriticKind, Learner, LearnerConfig, NamedTensor};
-pub use ppo::{LrSchedule, PpoConfig, UpdateStats};
+pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats};
 pub use risk::{Distortion, IQR_TAUS};
 pub use storage::{ActOutput, Rollout};
