@@ -295,7 +295,8 @@ pub fn update(
                     sq += z * z;
                 }
                 let logp = -0.5 * sq - sum_log_std - ad as f32 * HALF_LN_2PI;
-                let ratio = (logp - old_logp[s]).exp();
+                // log-ratio capped so that a stale sample cannot overflow exp to inf
+                let ratio = (logp - old_logp[s]).min(20.0).exp();
                 let a = adv[s];
                 let unclipped = -a * ratio;
                 let clip = -a * ratio.clamp(1.0 - cfg.clip_param, 1.0 + cfg.clip_param);
