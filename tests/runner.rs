@@ -8,7 +8,7 @@ use std::sync::Arc;
 use rall::config::TrainConfig;
 use rall::env::terrain::TerrainKind;
 use rall::env::OBS_DIM;
-use rall::eval::{evaluate_tracking, tracking_env};
+use rall::eval::{evaluate_tracking, tracking_env, ActionMode};
 use rall::learn::{load_checkpoint, save_checkpoint, CriticKind};
 use rall::runner::{load_policy, train, LATEST};
 
@@ -155,7 +155,7 @@ fn tracking_evaluation_of_an_untrained_policy_gives_bounded_scores() {
     train(tiny_config(CriticKind::Scalar), &run, false, no_stop(), &mut ()).unwrap();
     let p = load_policy(&run.join(LATEST)).unwrap();
     let env = tracking_env(&p.config.env);
-    let r = evaluate_tracking(&p.learner, &env, 4, 2, 1).unwrap();
+    let r = evaluate_tracking(&p.learner, &env, 4, 2, 1, ActionMode::Mean).unwrap();
     assert_eq!(r.episodes, 4);
     assert!((0.0..=1.0).contains(&r.lin_vel_score) && (0.0..=1.0).contains(&r.yaw_rate_score));
     assert!((0.0..=1.0).contains(&r.fall_rate));

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
-use crate::eval::{evaluate_tracking, tracking_env};
+use crate::eval::{evaluate_tracking, tracking_env, ActionMode};
 use crate::runner::load_policy;
 
 #[derive(Debug, Args)]
@@ -33,6 +33,9 @@ pub struct TrackingArgs {
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// Sample actions from the policy's Gaussian as in training (default: its mean).
+    #[arg(long)]
+    pub stochastic: bool,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -53,14 +56,15 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
     let policy = load_policy(&a.checkpoint)?;
     let env = tracking_env(&policy.config.env);
-    let r = evaluate_tracking(&policy.learner, &env, a.episodes, threads(a.threads), a.seed)?;
+    let mode = if a.stochastic { ActionMode::Sampled } else { ActionMode::Mean };
+    let r = evaluate_tracking(&policy.learner, &env, a.episodes, threads(a.threads), a.seed, mode)?;
     println!(
         "checkpoint {} (iteration {}, {} env steps)",
         a.checkpoint.display(),
         policy.progress.iteration,
         policy.progress.total_env_steps
     );
-    println!("episodes             {}", r.episodes);
+    println!("episodes             {} ({:?} actions)", r.episodes, mode);
     println!("lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)", r.lin_vel_score);
     println!("yaw-rate tracking    {:.3}", r.yaw_rate_score);
     println!("fall rate            {:.1}%", 100.0 * r.fall_rate);

@@ -1,5 +1,6 @@
 //! The `rall` command line (clap). Each subcommand lives in its own file.
 
+pub mod bench;
 pub mod eval;
 pub mod inspect;
 pub mod train;
@@ -25,6 +26,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Evaluate checkpoints (tracking; robustness benchmarks).
     Eval(eval::EvalArgs),
+    /// Measure throughput (env steps/s versus the raw physics limit).
+    Bench(bench::BenchArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -32,5 +35,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Inspect(args) => inspect::run(&args),
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Bench(args) => bench::run(&args),
     }
 }

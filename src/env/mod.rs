@@ -6,6 +6,7 @@
 //! - `terrain`: heightfield tiles and the curriculum.
 //! - `single`, `vec_env`: reset + step.
 
+pub mod bench;
 pub mod config;
 pub mod observation;
 pub mod reward;

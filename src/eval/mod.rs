@@ -2,4 +2,4 @@
 
 pub mod tracking;
 
-pub use tracking::{evaluate_tracking, tracking_env, TrackingReport};
+pub use tracking::{evaluate_tracking, tracking_env, ActionMode, TrackingReport};

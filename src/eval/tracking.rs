@@ -4,6 +4,7 @@
 use std::sync::Arc;
 
 use anyhow::Result;
+use rand::SeedableRng;
 
 use crate::env::config::PushConfig;
 use crate::env::terrain::TerrainKind;
@@ -34,9 +35,25 @@ pub fn tracking_env(training: &EnvConfig) -> EnvConfig {
     cfg
 }
 
-/// Runs `episodes` robots in parallel for one full episode each, acting with the
-/// policy's mean action.
-pub fn evaluate_tracking(learner: &Learner, env_cfg: &EnvConfig, episodes: usize, threads: usize, seed: u64) -> Result<TrackingReport> {
+/// How the policy picks actions during evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ActionMode {
+    /// The Gaussian's mean (deployment).
+    Mean,
+    /// Sampled as in training, from a generator seeded with `seed`.
+    Sampled,
+}
+
+/// Runs `episodes` robots in parallel for one full episode each.
+pub fn evaluate_tracking(
+    learner: &Learner,
+    env_cfg: &EnvConfig,
+    episodes: usize,
+    threads: usize,
+    seed: u64,
+    mode: ActionMode,
+) -> Result<TrackingReport> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let scene = build_scene(env_cfg, seed)?;
     let cfg = Arc::new(env_cfg.clone());
     let sigma = cfg.reward.tracking_sigma;
@@ -47,7 +64,10 @@ pub fn evaluate_tracking(learner: &Learner, env_cfg: &EnvConfig, episodes: usize
     let (mut lin_sum, mut yaw_sum, mut samples) = (0.0, 0.0, 0usize);
     let mut obs = envs.batch().obs.clone();
     for _ in 0..max_steps {
-        let actions = learner.act_mean(&obs);
+        let actions = match mode {
+            ActionMode::Mean => learner.act_mean(&obs),
+            ActionMode::Sampled => learner.act(&obs, &mut rng).actions,
+        };
         // Score the command each robot followed during this step.
         let commands: Vec<[f64; 3]> = envs.envs().iter().map(|e| e.command()).collect();
         let b = envs.step(&actions);
