@@ -22,3 +22,5 @@ pub mod cli;
 pub mod config;
 #[cfg(feature = "sim")]
 pub mod runner;
+#[cfg(feature = "sim")]
+pub mod viz;

@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod eval;
 pub mod inspect;
+pub mod play;
 pub mod train;
 
 use clap::{Parser, Subcommand};
@@ -24,6 +25,8 @@ pub enum Command {
     Inspect(inspect::InspectArgs),
     /// Train a policy (CVaR-PPO with an IQN critic, or the scalar baseline).
     Train(train::TrainArgs),
+    /// Watch a policy in the rerun viewer: robot, terrain, commands, value distribution, IQR.
+    Play(play::PlayArgs),
     /// Evaluate checkpoints (tracking; robustness benchmarks).
     Eval(eval::EvalArgs),
     /// Measure throughput (env steps/s versus the raw physics limit).
@@ -34,6 +37,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Inspect(args) => inspect::run(&args),
         Command::Train(args) => train::run(&args),
+        Command::Play(args) => play::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Bench(args) => bench::run(&args),
     }

@@ -10,6 +10,7 @@ use clap::Args;
 use crate::config::TrainConfig;
 use crate::learn::CriticKind;
 use crate::runner::{train, LATEST};
+use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
@@ -42,6 +43,22 @@ pub struct TrainArgs {
     /// Resume the run in this directory from its latest checkpoint.
     #[arg(long, conflicts_with = "run_dir")]
     pub resume: Option<PathBuf>,
+    /// Also record the run for rerun into this .rrd file (metrics per iteration,
+    /// evaluation episodes); no viewer needed.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["rerun_spawn", "rerun_connect"])]
+    pub rerun_save: Option<PathBuf>,
+    /// Also record the run to a rerun viewer started from PATH.
+    #[arg(long, conflicts_with = "rerun_connect")]
+    pub rerun_spawn: bool,
+    /// Also record the run to a running rerun viewer (default 127.0.0.1:9876).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:9876")]
+    pub rerun_connect: Option<String>,
+    /// With a rerun recording: one evaluation episode every K iterations (0 = none).
+    #[arg(long, value_name = "K", default_value_t = 50)]
+    pub rerun_eval_every: usize,
+    /// With a rerun recording: policy steps of an evaluation episode.
+    #[arg(long, value_name = "N", default_value_t = 500)]
+    pub rerun_eval_steps: usize,
 }
 
 fn parse_critic(s: &str) -> Result<CriticKind, String> {
@@ -114,7 +131,23 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         cfg.runner.seed,
         run_dir.display()
     );
-    let summary = train(cfg, &run_dir, resume, stop, &mut ())?;
+    let target = RerunTarget::from_flags(args.rerun_save.as_deref(), args.rerun_spawn, args.rerun_connect.as_deref());
+    let summary = match target {
+        None => train(cfg, &run_dir, resume, stop, &mut ())?,
+        Some(target) => {
+            // A resumed run evaluates in its own stored env.
+            let stored = run_dir.join("config.toml");
+            let run_cfg = if resume && stored.exists() { TrainConfig::from_toml_file(&stored)? } else { cfg.clone() };
+            let opts = TrainRecordingOptions { eval_every: args.rerun_eval_every, eval_steps: args.rerun_eval_steps };
+            let mut recorder = TrainRecorder::open(&target, &run_dir.display().to_string(), &run_cfg, opts)?;
+            let summary = train(cfg, &run_dir, resume, stop, &mut recorder)?;
+            recorder.finish()?;
+            if let RerunTarget::Save(path) = &target {
+                println!("rerun recording: {} (open with `rerun {}`)", path.display(), path.display());
+            }
+            summary
+        }
+    };
     println!(
         "{} at iteration {}; checkpoint {}",
         if summary.interrupted { "stopped" } else { "finished" },

@@ -1,0 +1,160 @@
+//! A `play` episode (default networks, flat ground, 20 s = 1000 policy steps) with
+//! rerun logging to an .rrd file versus without logging, side by side:
+//!
+//! - `no recording`: policy + physics only (what `play` costs without a viewer);
+//! - `disabled recording`: everything the logger does (critic evaluated every step,
+//!   columns built) with rerun's disabled stream (no serialisation, no I/O);
+//! - `recording to file`: the full thing, as `rall play --save`.
+//!
+//! After criterion, prints the overhead ratios and the .rrd size per simulated minute.
+//!
+//! `cargo bench --bench play`
+
+use std::hint::black_box;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use criterion::Criterion;
+use rall::env::{EnvConfig, ACT_DIM, OBS_DIM};
+use rall::learn::{Learner, LearnerConfig};
+use rall::viz::{self, PlayOptions, RerunTarget};
+
+const STEPS: usize = 1000;
+
+fn setup() -> (Learner, EnvConfig, PlayOptions) {
+    let learner = Learner::new(OBS_DIM, ACT_DIM, &LearnerConfig::default(), 0).expect("learner");
+    let mut env = EnvConfig::default();
+    env.terrain.kind = rall::env::terrain::TerrainKind::Flat;
+    env.episode.length_s = STEPS as f64 * env.control.policy_dt_s();
+    let opts = PlayOptions {
+        episodes: 1,
+        max_steps: Some(STEPS),
+        ..PlayOptions::default()
+    };
+    (learner, env, opts)
+}
+
+/// Plays until `STEPS` policy steps are simulated (a new episode if the robot
+/// falls), all into one recording; returns the steps.
+fn run(
+    learner: &Learner,
+    env: &EnvConfig,
+    opts: &PlayOptions,
+    mut rec: Option<rerun::RecordingStream>,
+) -> usize {
+    let (mut total, mut seed) = (0, opts.seed);
+    while total < STEPS {
+        let o = PlayOptions {
+            episodes: 1,
+            seed,
+            max_steps: Some(STEPS - total),
+            ..opts.clone()
+        };
+        let (report, back) = viz::play(learner, env, &o, rec).expect("play");
+        total += black_box(report).policy_steps;
+        rec = back;
+        seed += 1;
+    }
+    if let Some(rec) = rec {
+        viz::finish_recording(rec).expect("finish");
+    }
+    total
+}
+
+fn file_recording(path: &Path) -> rerun::RecordingStream {
+    viz::open_recording(
+        viz::PLAY_APP_ID,
+        "bench",
+        &RerunTarget::Save(path.into()),
+        viz::play_blueprint(),
+    )
+    .expect("recording")
+}
+
+fn main() {
+    let (learner, env, opts) = setup();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("bench.rrd");
+    let mut c = Criterion::default()
+        .configure_from_args()
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(20));
+    {
+        let mut g = c.benchmark_group(format!("play {STEPS} steps"));
+        g.bench_function("no recording", |b| {
+            b.iter(|| run(&learner, &env, &opts, None))
+        });
+        g.bench_function("disabled recording", |b| {
+            b.iter(|| {
+                run(
+                    &learner,
+                    &env,
+                    &opts,
+                    Some(rerun::RecordingStream::disabled()),
+                )
+            })
+        });
+        g.bench_function("recording to file", |b| {
+            b.iter(|| run(&learner, &env, &opts, Some(file_recording(&path))))
+        });
+        g.finish();
+    }
+    c.final_summary();
+
+    // Side by side, interleaved (the machine may be busy): median of 7 each.
+    let mut t = [Vec::new(), Vec::new(), Vec::new()];
+    for _ in 0..7 {
+        for (k, times) in t.iter_mut().enumerate() {
+            let t0 = Instant::now();
+            match k {
+                0 => run(&learner, &env, &opts, None),
+                1 => run(
+                    &learner,
+                    &env,
+                    &opts,
+                    Some(rerun::RecordingStream::disabled()),
+                ),
+                _ => run(&learner, &env, &opts, Some(file_recording(&path))),
+            };
+            times.push(t0.elapsed().as_secs_f64());
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    };
+    let [mut a, mut b, mut f] = t;
+    let (none, disabled, file) = (median(&mut a), median(&mut b), median(&mut f));
+    let sim_min = STEPS as f64 * env.control.policy_dt_s() / 60.0;
+    let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+    println!(
+        "\nplay, {STEPS} policy steps ({:.1} s simulated), medians of 7 interleaved runs:",
+        sim_min * 60.0
+    );
+    println!(
+        "  no recording       {:8.1} ms  ({:.0} steps/s)",
+        none * 1e3,
+        STEPS as f64 / none
+    );
+    println!(
+        "  disabled recording {:8.1} ms  (critic + logger, no rerun I/O)",
+        disabled * 1e3
+    );
+    println!("  recording to file  {:8.1} ms", file * 1e3);
+    println!(
+        "  overhead of logging to a file vs no recording:      {:+.1}% (ratio {:.3})",
+        (file / none - 1.0) * 100.0,
+        file / none
+    );
+    println!(
+        "  of which rerun itself (file vs disabled recording): {:+.1}% (ratio {:.3})",
+        (file / disabled - 1.0) * 100.0,
+        file / disabled
+    );
+    println!(
+        "  .rrd size: {:.2} MB for {:.2} simulated min = {:.2} MB per simulated minute",
+        bytes as f64 / 1e6,
+        sim_min,
+        bytes as f64 / 1e6 / sim_min
+    );
+}

@@ -1,0 +1,625 @@
+//! Logging one robot, step by step, to a rerun recording.
+//!
+//! Entity layout (the blueprint in [`super::blueprint`] refers to these paths):
+//!
+//! | path | what | when |
+//! | --- | --- | --- |
+//! | `world/robot/<body>` | `Transform3D` (world pose of the body) | every step |
+//! | `world/robot/<body>/<geom>` | box / capsule / ellipsoid / cylinder in the body frame | static |
+//! | `world/terrain/chunk_<x>_<y>` | heightfield mesh, 8 m chunks, logged when the robot comes near | static |
+//! | `world/ground` | a quad (flat ground) | static |
+//! | `world/velocity` | arrows at the trunk: command (green), measured (blue) | every step |
+//! | `world/push` | arrow at the trunk while a push acts (cleared after) | on pushes |
+//! | `plots/velocity/{vx,vy,yaw_rate}` | scalars `[command, measured]` (body frame) | every step |
+//! | `plots/torques` | 12 joint torques (N m) | every step |
+//! | `plots/contacts` | foot contact, leg `i` drawn at `i + 0.8 * contact` | every step |
+//! | `value/quantiles` | `BarChart` of `Z_tau(s)` on a midpoint tau grid (IQN only) | every step |
+//! | `value/stats` | scalars `[mean, CVaR_eta]` (scalar critic: `[V, V]`) | every step |
+//! | `value/iqr` | `Z_0.75(s) - Z_0.25(s)` | every step |
+//! | `events` | `TextLog`: episodes, risk-threshold crossings, penalties, pushes | on events |
+//!
+//! Timelines: `sim_time` (seconds of simulated time, continuing across episodes),
+//! `step` (policy steps), plus any extra constant sequence (e.g. `iteration` for
+//! evaluation episodes during training).
+//!
+//! Per-step data is buffered and sent as columns (one chunk per entity per flush),
+//! which keeps logging cheap next to the physics; events go out at once.
+
+use std::collections::HashSet;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use rerun::{RecordingStream, TimeColumn};
+
+use super::convert::{self, Primitive, TriMesh};
+use super::value::ValueReading;
+use crate::env::config::PushConfig;
+use crate::env::risk::NUM_RISK_TERMS;
+use crate::env::state::roll_pitch_yaw;
+use crate::env::terrain::Terrain;
+use crate::env::{Env, StepResult};
+use crate::robot::{Robot, LEGS};
+use crate::sim::ObjKind;
+
+/// Steps buffered before the columns are sent (1 s at 50 Hz).
+pub const DEFAULT_FLUSH_STEPS: usize = 50;
+/// Side of a terrain chunk in samples (8 m at 0.1 m).
+const TERRAIN_CHUNK_SAMPLES: usize = 80;
+/// Terrain chunks within this distance (m) of the trunk are logged.
+const TERRAIN_RADIUS_M: f64 = 6.0;
+/// Half side of the flat-ground quad (m).
+const GROUND_HALF_EXTENT_M: f64 = 50.0;
+/// Arrow length per newton of push force (m/N).
+const PUSH_ARROW_M_PER_N: f32 = 0.005;
+
+/// Per-step columns waiting to be sent.
+#[derive(Default)]
+struct Columns {
+    time_s: Vec<f64>,
+    step: Vec<i64>,
+    /// Per body: translations and xyzw quaternions.
+    body_pos: Vec<Vec<[f32; 3]>>,
+    body_quat: Vec<Vec<[f32; 4]>>,
+    vx: Vec<f64>,
+    vy: Vec<f64>,
+    wz: Vec<f64>,
+    torques: Vec<f64>,
+    contacts: Vec<f64>,
+    arrows_origin: Vec<[f32; 3]>,
+    arrows_vec: Vec<[f32; 3]>,
+    quantiles: Vec<Vec<f32>>,
+    stats: Vec<f64>,
+    iqr: Vec<f64>,
+}
+
+impl Columns {
+    fn len(&self) -> usize {
+        self.time_s.len()
+    }
+    fn clear(&mut self) {
+        let nb = self.body_pos.len();
+        *self = Columns {
+            body_pos: vec![Vec::new(); nb],
+            body_quat: vec![Vec::new(); nb],
+            ..Default::default()
+        };
+    }
+}
+
+/// Logs a robot (and its ground) to a recording; see the module docs for the paths.
+pub struct EpisodeLogger {
+    rec: RecordingStream,
+    /// (body id, entity path) of every robot body.
+    bodies: Vec<(usize, String)>,
+    taus: Vec<f32>,
+    terrain: Option<Arc<Terrain>>,
+    logged_chunks: HashSet<(usize, usize)>,
+    extra_timeline: Option<(&'static str, i64)>,
+    cols: Columns,
+    flush_steps: usize,
+    time_s: f64,
+    step: i64,
+    prev_exceeded: [bool; NUM_RISK_TERMS],
+    push_shown: bool,
+    prev_base_vel_world: [f64; 3],
+}
+
+fn rgba(c: [f32; 4]) -> rerun::Color {
+    let b = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    rerun::Color::from_unmultiplied_rgba(b(c[0]), b(c[1]), b(c[2]), b(c[3]))
+}
+
+fn log_mesh(rec: &RecordingStream, path: &str, m: &TriMesh) -> Result<()> {
+    rec.log_static(
+        path,
+        &rerun::Mesh3D::new(m.positions.iter().copied())
+            .with_vertex_normals(m.normals.iter().copied())
+            .with_vertex_colors(
+                m.colors
+                    .iter()
+                    .map(|c| rerun::Color::from_unmultiplied_rgba(c[0], c[1], c[2], c[3])),
+            )
+            .with_triangle_indices(m.triangles.iter().copied()),
+    )?;
+    Ok(())
+}
+
+/// Entity path of body `b` under `world/robot`.
+pub fn body_path(robot: &Robot, b: usize) -> String {
+    let name = robot.model.name(ObjKind::Body, b);
+    if name.is_empty() {
+        format!("world/robot/body_{b}")
+    } else {
+        format!("world/robot/{name}")
+    }
+}
+
+impl EpisodeLogger {
+    /// Logs the static parts (coordinate frame, geoms, series styles, flat ground) and
+    /// returns a logger for the per-step data. `taus`: abscissa of the quantile bar
+    /// chart (empty for a scalar critic); `distortion_label` names the distorted value.
+    pub fn new(
+        rec: RecordingStream,
+        robot: &Robot,
+        terrain: Option<Arc<Terrain>>,
+        taus: Vec<f32>,
+        distortion_label: &str,
+    ) -> Result<EpisodeLogger> {
+        rec.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;
+        let m = &robot.model;
+        let mut bodies = Vec::new();
+        // Bodies that carry geoms (plus the trunk), in model order; the world body's
+        // ground geoms are logged as terrain.
+        let mut has_geom = vec![false; m.nbody()];
+        for g in 0..m.ngeom() {
+            has_geom[m.geom_body(g)] = true;
+        }
+        has_geom[robot.layout.trunk_body] = true;
+        for (b, _) in has_geom.iter().enumerate().skip(1).filter(|(_, h)| **h) {
+            bodies.push((b, body_path(robot, b)));
+        }
+        for g in 0..m.ngeom() {
+            let b = m.geom_body(g);
+            let Some(prim) = convert::geom_primitive(
+                m.geom_shape(g),
+                m.geom_size()[g],
+                m.geom_pos()[g],
+                m.geom_quat()[g],
+            ) else {
+                continue;
+            };
+            let name = m.name(ObjKind::Geom, g);
+            let name = if name.is_empty() {
+                format!("geom_{g}")
+            } else {
+                name.to_string()
+            };
+            let path = if b == 0 {
+                format!("world/static/{name}")
+            } else {
+                format!("{}/{name}", body_path(robot, b))
+            };
+            log_primitive(&rec, &path, &prim, rgba(m.geom_rgba()[g]))?;
+        }
+        if terrain.is_none() {
+            log_mesh(
+                &rec,
+                "world/ground",
+                &convert::ground_quad([0.0, 0.0], GROUND_HALF_EXTENT_M),
+            )?;
+        }
+        let series = |names: &[&str]| {
+            rerun::SeriesLines::new().with_names(names.iter().map(|s| s.to_string()))
+        };
+        for axis in ["vx", "vy", "yaw_rate"] {
+            rec.log_static(
+                format!("plots/velocity/{axis}"),
+                &series(&["command", "measured"]),
+            )?;
+        }
+        let joints: Vec<&str> = robot
+            .layout
+            .joint_names
+            .iter()
+            .map(|s| s.as_str())
+            .collect();
+        rec.log_static("plots/torques", &series(&joints))?;
+        rec.log_static("plots/contacts", &series(&LEGS))?;
+        rec.log_static("value/stats", &series(&["mean", distortion_label]))?;
+        rec.log_static("value/iqr", &series(&["IQR"]))?;
+        let nb = bodies.len();
+        Ok(EpisodeLogger {
+            rec,
+            bodies,
+            taus,
+            terrain,
+            logged_chunks: HashSet::new(),
+            extra_timeline: None,
+            cols: Columns {
+                body_pos: vec![Vec::new(); nb],
+                body_quat: vec![Vec::new(); nb],
+                ..Default::default()
+            },
+            flush_steps: DEFAULT_FLUSH_STEPS,
+            time_s: 0.0,
+            step: 0,
+            prev_exceeded: [false; NUM_RISK_TERMS],
+            push_shown: false,
+            prev_base_vel_world: [0.0; 3],
+        })
+    }
+
+    pub fn recording(&self) -> &RecordingStream {
+        &self.rec
+    }
+
+    /// Steps buffered before sending (1 = send every step, for live viewing).
+    pub fn set_flush_steps(&mut self, n: usize) {
+        self.flush_steps = n.max(1);
+    }
+
+    /// Tags every following row with a constant sequence value (e.g. `iteration`).
+    pub fn set_extra_timeline(&mut self, name: &'static str, value: i64) -> Result<()> {
+        self.flush()?;
+        self.extra_timeline = Some((name, value));
+        Ok(())
+    }
+
+    /// Current simulated time (s) and policy step of the recording.
+    pub fn clock(&self) -> (f64, i64) {
+        (self.time_s, self.step)
+    }
+
+    /// Number of bodies logged per step.
+    pub fn num_bodies(&self) -> usize {
+        self.bodies.len()
+    }
+
+    fn set_event_time(&self) {
+        self.rec.set_duration_secs("sim_time", self.time_s);
+        self.rec.set_time_sequence("step", self.step);
+        if let Some((name, v)) = &self.extra_timeline {
+            self.rec.set_time_sequence(*name, *v);
+        }
+    }
+
+    /// A `TextLog` line at the current time.
+    pub fn event(&self, level: &str, text: impl Into<String>) -> Result<()> {
+        self.set_event_time();
+        self.rec.log(
+            "events",
+            &rerun::TextLog::new(text.into()).with_level(level),
+        )?;
+        Ok(())
+    }
+
+    /// Starts an episode: logs the first frame (`value` of the first observation).
+    pub fn begin_episode(&mut self, env: &Env, label: &str, value: &ValueReading) -> Result<()> {
+        self.prev_exceeded = [false; NUM_RISK_TERMS];
+        self.prev_base_vel_world = base_vel_world(env.robot());
+        let c = env.command();
+        let d = env.draw;
+        self.event(
+            rerun::TextLogLevel::INFO,
+            format!(
+                "{label}: command vx {:.2} m/s, vy {:.2} m/s, yaw rate {:.2} rad/s; friction {}, added base mass {:.2} kg; terrain level {} type {}",
+                c[0],
+                c[1],
+                c[2],
+                d.friction.map_or("model".to_string(), |f| format!("{f:.2}")),
+                d.added_base_mass_kg,
+                env.terrain_level,
+                env.terrain_type
+            ),
+        )?;
+        self.record(env, value, None)
+    }
+
+    /// Logs the frame after a policy step: `dt_s` later, the state the step produced
+    /// and `value` of the observation it returned.
+    pub fn log_step(
+        &mut self,
+        env: &Env,
+        result: &StepResult,
+        value: &ValueReading,
+        dt_s: f64,
+    ) -> Result<()> {
+        self.time_s += dt_s;
+        self.step += 1;
+        self.record(env, value, Some(result))
+    }
+
+    fn record(
+        &mut self,
+        env: &Env,
+        value: &ValueReading,
+        result: Option<&StepResult>,
+    ) -> Result<()> {
+        let robot = env.robot();
+        let base = robot.base_pos_m();
+        self.ensure_terrain_near(base)?;
+        if let Some(r) = result {
+            self.log_events(env, r)?;
+        }
+        let c = &mut self.cols;
+        c.time_s.push(self.time_s);
+        c.step.push(self.step);
+        let (xpos, xquat) = (robot.data.xpos(), robot.data.xquat());
+        for (i, (b, _)) in self.bodies.iter().enumerate() {
+            let p = xpos[*b];
+            c.body_pos[i].push([p[0] as f32, p[1] as f32, p[2] as f32]);
+            c.body_quat[i].push(convert::quat_wxyz_to_xyzw(xquat[*b]));
+        }
+        let s = env.state();
+        let cmd = env.command();
+        c.vx.extend([cmd[0], s.base_lin_vel_body_mps[0]]);
+        c.vy.extend([cmd[1], s.base_lin_vel_body_mps[1]]);
+        c.wz.extend([cmd[2], s.base_ang_vel_body_rad_s[2]]);
+        c.torques.extend(s.torques_nm);
+        c.contacts
+            .extend((0..4).map(|i| i as f64 + 0.8 * s.foot_contact[i] as u8 as f64));
+        // Command and measured planar velocity as world-frame arrows above the trunk.
+        let yaw = roll_pitch_yaw(robot.base_quat_wxyz())[2];
+        let (sy, cy) = yaw.sin_cos();
+        let cmd_world = [cy * cmd[0] - sy * cmd[1], sy * cmd[0] + cy * cmd[1], 0.0];
+        let v = base_vel_world(robot);
+        let origin = [base[0] as f32, base[1] as f32, (base[2] + 0.15) as f32];
+        c.arrows_origin.extend([origin, origin]);
+        c.arrows_vec
+            .extend([f32x3(cmd_world), [v[0] as f32, v[1] as f32, 0.0]]);
+        if !self.taus.is_empty() {
+            c.quantiles.push(value.quantiles.clone());
+        }
+        c.stats.extend([value.mean as f64, value.distorted as f64]);
+        c.iqr.push(value.iqr as f64);
+        if c.len() >= self.flush_steps {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn log_events(&mut self, env: &Env, r: &StepResult) -> Result<()> {
+        for (k, (name, term)) in env.config().risk.terms().into_iter().enumerate() {
+            if r.risk.exceeded[k] && !self.prev_exceeded[k] {
+                self.event(
+                    rerun::TextLogLevel::WARN,
+                    format!("risk threshold crossed: {name}"),
+                )?;
+            }
+            if r.risk.fired[k] {
+                self.event(
+                    rerun::TextLogLevel::ERROR,
+                    format!("risk penalty: {name} (-{:.1})", term.weight),
+                )?;
+            }
+        }
+        self.prev_exceeded = r.risk.exceeded;
+        let robot = env.robot();
+        let base = robot.base_pos_m();
+        let v = base_vel_world(robot);
+        let fp = env.force_push();
+        let push_vec: Option<[f32; 3]> = match env.config().randomization.push {
+            PushConfig::VelocityKick { .. } if r.pushed => {
+                // The kick is applied before the step: the velocity change over the
+                // step shows it (plus one step of dynamics).
+                Some([
+                    (v[0] - self.prev_base_vel_world[0]) as f32,
+                    (v[1] - self.prev_base_vel_world[1]) as f32,
+                    0.0,
+                ])
+            }
+            PushConfig::Force { .. } if r.pushed || fp.steps_left > 0 => {
+                Some(fp.force_n.map(|f| f as f32 * PUSH_ARROW_M_PER_N))
+            }
+            _ => None,
+        };
+        self.prev_base_vel_world = v;
+        if r.pushed {
+            let what = match env.config().randomization.push {
+                PushConfig::Force { .. } => {
+                    format!(
+                        "push: force [{:.0}, {:.0}, {:.0}] N on the trunk",
+                        fp.force_n[0], fp.force_n[1], fp.force_n[2]
+                    )
+                }
+                _ => {
+                    let d = push_vec.unwrap_or_default();
+                    format!("push: base velocity kick ~[{:.2}, {:.2}] m/s", d[0], d[1])
+                }
+            };
+            self.event(rerun::TextLogLevel::INFO, what)?;
+        }
+        match push_vec {
+            Some(vec) => {
+                self.set_event_time();
+                let origin = [base[0] as f32, base[1] as f32, base[2] as f32];
+                let tail = [origin[0] - vec[0], origin[1] - vec[1], origin[2] - vec[2]];
+                self.rec.log(
+                    "world/push",
+                    &rerun::Arrows3D::from_vectors([vec])
+                        .with_origins([tail])
+                        .with_colors([rerun::Color::from_rgb(230, 40, 40)]),
+                )?;
+                self.push_shown = true;
+            }
+            None if self.push_shown => {
+                self.set_event_time();
+                self.rec
+                    .log("world/push", &rerun::archetypes::Clear::flat())?;
+                self.push_shown = false;
+            }
+            None => {}
+        }
+        if r.done {
+            self.event(
+                rerun::TextLogLevel::INFO,
+                format!(
+                    "episode ended ({})",
+                    if r.time_out { "time-out" } else { "fall" }
+                ),
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Logs the terrain chunks within [`TERRAIN_RADIUS_M`] of `p` not logged yet.
+    fn ensure_terrain_near(&mut self, p: [f64; 3]) -> Result<()> {
+        let Some(t) = self.terrain.clone() else {
+            return Ok(());
+        };
+        let (nx, ny) = t.grid_shape();
+        let h = t.horizontal_scale_m();
+        let [x0, y0] = t.grid_origin_m();
+        let chunk_m = TERRAIN_CHUNK_SAMPLES as f64 * h;
+        let (ncx, ncy) = (
+            convert::chunk_count(TERRAIN_CHUNK_SAMPLES, nx),
+            convert::chunk_count(TERRAIN_CHUNK_SAMPLES, ny),
+        );
+        let range = |c: f64, n: usize| {
+            let lo = ((c - TERRAIN_RADIUS_M) / chunk_m).floor().max(0.0) as usize;
+            let hi = (((c + TERRAIN_RADIUS_M) / chunk_m).floor().max(0.0) as usize).min(n - 1);
+            lo..=hi
+        };
+        for cy in range(p[1] - y0, ncy) {
+            for cx in range(p[0] - x0, ncx) {
+                if !self.logged_chunks.insert((cx, cy)) {
+                    continue;
+                }
+                let mesh = convert::heightfield_mesh(
+                    t.heights_m(),
+                    nx,
+                    [x0, y0],
+                    h,
+                    convert::chunk_sample_range(cx, TERRAIN_CHUNK_SAMPLES, nx),
+                    convert::chunk_sample_range(cy, TERRAIN_CHUNK_SAMPLES, ny),
+                    t.height_range_m(),
+                );
+                log_mesh(&self.rec, &format!("world/terrain/chunk_{cx}_{cy}"), &mesh)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends the buffered steps as columns.
+    pub fn flush(&mut self) -> Result<()> {
+        let n = self.cols.len();
+        if n == 0 {
+            return Ok(());
+        }
+        let c = std::mem::take(&mut self.cols);
+        self.cols.clear();
+        self.cols.body_pos = vec![Vec::new(); self.bodies.len()];
+        self.cols.body_quat = vec![Vec::new(); self.bodies.len()];
+        let mut index = vec![
+            TimeColumn::new_duration_secs("sim_time", c.time_s),
+            TimeColumn::new_sequence("step", c.step),
+        ];
+        if let Some((name, v)) = &self.extra_timeline {
+            index.push(TimeColumn::new_sequence(*name, std::iter::repeat_n(*v, n)));
+        }
+        let rec = &self.rec;
+        let send = |path: &str, cols: Vec<rerun::SerializedComponentColumn>| -> Result<()> {
+            rec.send_columns(path, index.clone(), cols)
+                .with_context(|| format!("logging {path}"))?;
+            Ok(())
+        };
+        for (i, (_, path)) in self.bodies.iter().enumerate() {
+            send(
+                path,
+                rerun::Transform3D::update_fields()
+                    .with_many_translation(c.body_pos[i].iter().copied())
+                    .with_many_quaternion(
+                        c.body_quat[i]
+                            .iter()
+                            .map(|q| rerun::Quaternion::from_xyzw(*q)),
+                    )
+                    .columns_of_unit_batches()?
+                    .collect(),
+            )?;
+        }
+        let scalars = |vals: &[f64], k: usize| -> Result<Vec<rerun::SerializedComponentColumn>> {
+            Ok(rerun::Scalars::new(vals.iter().copied())
+                .columns(std::iter::repeat_n(k, vals.len() / k))?
+                .collect())
+        };
+        send("plots/velocity/vx", scalars(&c.vx, 2)?)?;
+        send("plots/velocity/vy", scalars(&c.vy, 2)?)?;
+        send("plots/velocity/yaw_rate", scalars(&c.wz, 2)?)?;
+        send("plots/torques", scalars(&c.torques, c.torques.len() / n)?)?;
+        send("plots/contacts", scalars(&c.contacts, 4)?)?;
+        send("value/stats", scalars(&c.stats, 2)?)?;
+        send("value/iqr", scalars(&c.iqr, 1)?)?;
+        send(
+            "world/velocity",
+            rerun::Arrows3D::update_fields()
+                .with_vectors(c.arrows_vec.iter().copied())
+                .with_origins(c.arrows_origin.iter().copied())
+                .with_colors((0..n).flat_map(|_| {
+                    [
+                        rerun::Color::from_rgb(40, 200, 60),
+                        rerun::Color::from_rgb(60, 120, 240),
+                    ]
+                }))
+                .columns(std::iter::repeat_n(2, n))?
+                .collect(),
+        )?;
+        if !self.taus.is_empty() {
+            let taus = rerun::components::TensorData::from(rerun::datatypes::TensorData::from(
+                self.taus.clone(),
+            ));
+            send(
+                "value/quantiles",
+                rerun::BarChart::update_fields()
+                    .with_many_values(
+                        c.quantiles
+                            .into_iter()
+                            .map(rerun::datatypes::TensorData::from),
+                    )
+                    .with_many_abscissa(std::iter::repeat_n(taus, n))
+                    .columns_of_unit_batches()?
+                    .collect(),
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Flushes and hands back the recording (to log more, or to close it).
+    pub fn finish(mut self) -> Result<RecordingStream> {
+        self.flush()?;
+        Ok(self.rec)
+    }
+}
+
+fn f32x3(v: [f64; 3]) -> [f32; 3] {
+    [v[0] as f32, v[1] as f32, v[2] as f32]
+}
+
+/// World-frame linear velocity of the trunk (free joint qvel).
+fn base_vel_world(robot: &Robot) -> [f64; 3] {
+    let a = robot.layout.root_dof_adr;
+    let q = robot.data.qvel();
+    [q[a], q[a + 1], q[a + 2]]
+}
+
+/// Logs one primitive as static data at `path` (in its parent's frame).
+pub fn log_primitive(
+    rec: &RecordingStream,
+    path: &str,
+    prim: &Primitive,
+    color: rerun::Color,
+) -> Result<()> {
+    let q = |x: [f32; 4]| rerun::Quaternion::from_xyzw(x);
+    match *prim {
+        Primitive::Box(b) => rec.log_static(
+            path,
+            &rerun::Boxes3D::from_centers_and_half_sizes([b.center], [b.half_size])
+                .with_quaternions([q(b.quat_xyzw)])
+                .with_colors([color])
+                .with_fill_mode(rerun::FillMode::Solid),
+        )?,
+        Primitive::Capsule(cp) => rec.log_static(
+            path,
+            &rerun::Capsules3D::from_lengths_and_radii([cp.length], [cp.radius])
+                .with_translations([cp.translation])
+                .with_quaternions([q(cp.quat_xyzw)])
+                .with_colors([color])
+                .with_fill_mode(rerun::FillMode::Solid),
+        )?,
+        Primitive::Ellipsoid(e) => rec.log_static(
+            path,
+            &rerun::Ellipsoids3D::from_centers_and_half_sizes([e.center], [e.half_size])
+                .with_quaternions([q(e.quat_xyzw)])
+                .with_colors([color])
+                .with_fill_mode(rerun::FillMode::Solid),
+        )?,
+        Primitive::Cylinder(cy) => rec.log_static(
+            path,
+            &rerun::Cylinders3D::from_lengths_and_radii([cy.length], [cy.radius])
+                .with_centers([cy.center])
+                .with_quaternions([q(cy.quat_xyzw)])
+                .with_colors([color])
+                .with_fill_mode(rerun::FillMode::Solid),
+        )?,
+    }
+    Ok(())
+}

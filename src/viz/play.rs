@@ -1,0 +1,208 @@
+//! Running a policy (deterministic mean action) for the viewer, with or without a
+//! recording. A scenario is just another [`EnvConfig`] (and so another scene).
+
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+
+use super::episode::EpisodeLogger;
+use super::value::{ValueProbe, ValueReading, DEFAULT_NUM_BARS};
+use crate::env::terrain::Terrain;
+use crate::env::{build_scene, Env, EnvConfig, EpisodeEnd, Scene, OBS_DIM};
+use crate::learn::Learner;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct PlayOptions {
+    pub episodes: usize,
+    /// Seed of the env (commands, randomisation, noise, pushes).
+    pub seed: u64,
+    /// Seed of the terrain (use the training run's seed to see its terrain).
+    pub scene_seed: u64,
+    /// Stop an episode after this many policy steps (default: the env's episode length).
+    pub max_steps: Option<usize>,
+    /// Terrain level of every episode (rough terrain); the type cycles with the episode.
+    pub terrain_level: usize,
+    /// Bars of the quantile chart.
+    pub num_bars: usize,
+    /// Steps buffered before the recording gets them.
+    pub flush_steps: usize,
+}
+
+impl Default for PlayOptions {
+    fn default() -> Self {
+        PlayOptions {
+            episodes: 1,
+            seed: 0,
+            scene_seed: 1,
+            max_steps: None,
+            terrain_level: 0,
+            num_bars: DEFAULT_NUM_BARS,
+            flush_steps: super::episode::DEFAULT_FLUSH_STEPS,
+        }
+    }
+}
+
+/// How one episode went.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlayedEpisode {
+    pub steps: usize,
+    pub total_reward: f64,
+    /// `None` when cut at `max_steps` before the env ended it.
+    pub end: Option<EpisodeEnd>,
+    pub risk_penalties: usize,
+    pub pushes: usize,
+}
+
+/// What a play run did.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PlayReport {
+    pub episodes: Vec<PlayedEpisode>,
+    pub policy_steps: usize,
+    pub sim_time_s: f64,
+}
+
+/// One env for the viewer: the scene of `cfg` and an [`Env`] on it.
+pub struct ViewerEnv {
+    pub env: Env,
+    /// The heightfield (rough ground), for the logger.
+    pub terrain: Option<Arc<Terrain>>,
+    scene: Scene,
+    cfg: Arc<EnvConfig>,
+}
+
+impl ViewerEnv {
+    pub fn new(cfg: &EnvConfig, scene_seed: u64, env_seed: u64) -> Result<ViewerEnv> {
+        let scene = build_scene(cfg, scene_seed).context("building the scene")?;
+        let terrain = scene.terrain.clone();
+        let cfg = Arc::new(cfg.clone());
+        let env = Env::new(cfg.clone(), &scene.model, terrain.clone(), env_seed, 0)
+            .context("creating the env")?;
+        Ok(ViewerEnv {
+            env,
+            terrain,
+            scene,
+            cfg,
+        })
+    }
+
+    /// Replaces the env by a fresh one seeded `env_seed` (same draws as the first
+    /// time with that seed: evaluation episodes stay comparable).
+    pub fn reseed(&mut self, env_seed: u64) -> Result<()> {
+        self.env = Env::new(
+            self.cfg.clone(),
+            &self.scene.model,
+            self.terrain.clone(),
+            env_seed,
+            0,
+        )
+        .context("creating the env")?;
+        Ok(())
+    }
+}
+
+/// Runs one episode of `learner`'s mean action in `env`, logging every step when a
+/// logger is given (the critic is only evaluated then).
+pub fn run_episode(
+    learner: &Learner,
+    env: &mut Env,
+    probe: &ValueProbe,
+    mut logger: Option<&mut EpisodeLogger>,
+    max_steps: Option<usize>,
+    label: &str,
+) -> Result<PlayedEpisode> {
+    let mut obs = vec![0.0f32; OBS_DIM];
+    let mut final_obs = vec![0.0f32; OBS_DIM];
+    env.reset(&mut obs).context("resetting the env")?;
+    let dt = env.config().control.policy_dt_s();
+    let read = |obs: &[f32]| -> ValueReading { probe.read(learner, obs) };
+    if let Some(l) = logger.as_deref_mut() {
+        l.begin_episode(env, label, &read(&obs))?;
+    }
+    let limit = max_steps.unwrap_or(usize::MAX).min(env.max_steps());
+    let mut ep = PlayedEpisode {
+        steps: 0,
+        total_reward: 0.0,
+        end: None,
+        risk_penalties: 0,
+        pushes: 0,
+    };
+    while ep.steps < limit {
+        let action = learner.act_mean(&obs);
+        let r = env.step(&action, &mut obs, &mut final_obs);
+        ep.steps += 1;
+        ep.total_reward += r.reward;
+        ep.risk_penalties += r.risk.fired.iter().filter(|f| **f).count();
+        ep.pushes += r.pushed as usize;
+        if let Some(l) = logger.as_deref_mut() {
+            l.log_step(env, &r, &read(&obs), dt)?;
+        }
+        if r.done {
+            ep.end = env.take_summary().map(|s| s.end);
+            break;
+        }
+    }
+    if ep.end.is_none() {
+        if let Some(l) = logger {
+            l.event(
+                rerun::TextLogLevel::INFO,
+                format!("episode cut after {} steps", ep.steps),
+            )?;
+        }
+    }
+    Ok(ep)
+}
+
+/// Plays `opts.episodes` episodes of `learner` in `cfg`; logs them when `rec` is given
+/// (the blueprint is the caller's: see [`super::open_recording`]). Returns the report
+/// and the recording, flushed.
+pub fn play(
+    learner: &Learner,
+    cfg: &EnvConfig,
+    opts: &PlayOptions,
+    rec: Option<rerun::RecordingStream>,
+) -> Result<(PlayReport, Option<rerun::RecordingStream>)> {
+    let mut venv = ViewerEnv::new(cfg, opts.scene_seed, opts.seed)?;
+    let terrain = venv.terrain.clone();
+    let num_types = terrain.as_ref().map_or(1, |t| t.num_types());
+    let level = terrain
+        .as_ref()
+        .map_or(0, |t| opts.terrain_level.min(t.num_levels() - 1));
+    let probe = ValueProbe::new(learner, opts.num_bars);
+    let mut logger = match rec {
+        Some(rec) => {
+            let mut l = EpisodeLogger::new(
+                rec,
+                venv.env.robot(),
+                terrain,
+                probe.taus().to_vec(),
+                probe.label(),
+            )?;
+            l.set_flush_steps(opts.flush_steps);
+            Some(l)
+        }
+        None => None,
+    };
+    let mut report = PlayReport::default();
+    let dt = cfg.control.policy_dt_s();
+    for e in 0..opts.episodes {
+        venv.env.set_terrain_cell(level, e % num_types);
+        let label = format!("episode {}/{}", e + 1, opts.episodes);
+        let ep = run_episode(
+            learner,
+            &mut venv.env,
+            &probe,
+            logger.as_mut(),
+            opts.max_steps,
+            &label,
+        )?;
+        report.policy_steps += ep.steps;
+        report.sim_time_s += ep.steps as f64 * dt;
+        report.episodes.push(ep);
+    }
+    let rec = match logger {
+        Some(l) => Some(l.finish()?),
+        None => None,
+    };
+    Ok((report, rec))
+}

@@ -1,0 +1,481 @@
+//! Recordings read back: `play` to an .rrd holds the robot (static geoms, one
+//! transform per step per body), the terrain, the plots and one bar chart per step;
+//! the training observer logs metrics per iteration and evaluation episodes; the CLI
+//! fails fast without a viewer. When a `rerun` CLI is on PATH (pip rerun-sdk), the
+//! files also pass `rerun rrd verify`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use rall::config::TrainConfig;
+use rall::env::terrain::{TerrainKind, TerrainProportions};
+use rall::env::{ACT_DIM, OBS_DIM};
+use rall::learn::{CriticKind, Learner};
+use rall::runner::{save_policy, Progress};
+use rall::viz::{
+    self, PlayOptions, RerunTarget, RrdSummary, TrainRecorder, TrainRecordingOptions, ValueProbe,
+};
+
+const BODIES: [&str; 13] = [
+    "trunk", "FR_hip", "FR_thigh", "FR_calf", "FR_foot", "FL_hip", "FL_thigh", "FL_calf",
+    "FL_foot", "RR_hip", "RR_thigh", "RR_calf", "RR_foot",
+];
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// A small, fast config: tiny nets, 1 s episodes, flat ground.
+fn small_cfg(critic: CriticKind) -> TrainConfig {
+    let mut cfg = TrainConfig::default();
+    cfg.env.robot_mjcf = root().join("mjcf/aliengo.xml").display().to_string();
+    cfg.env.terrain.kind = TerrainKind::Flat;
+    cfg.env.episode.length_s = 1.0;
+    cfg.learner.critic = critic;
+    cfg.learner.actor_hidden = vec![32, 32];
+    cfg.learner.critic_hidden = vec![32, 32];
+    cfg.learner.num_cos = 16;
+    cfg.learner.num_taus = 8;
+    cfg.learner.num_target_taus = 8;
+    cfg.learner.num_value_taus = 16;
+    cfg.runner.num_envs = 4;
+    cfg.runner.steps_per_env = 8;
+    cfg.runner.threads = 1;
+    cfg.runner.iterations = 2;
+    cfg
+}
+
+/// A small rough terrain (4 levels x 2 types, 1 m border) around the same robot.
+fn rough_cfg() -> TrainConfig {
+    let mut cfg = small_cfg(CriticKind::Iqn);
+    let t = &mut cfg.env.terrain;
+    t.kind = TerrainKind::Rough;
+    t.num_levels = 4;
+    t.num_types = 2;
+    t.border_size_m = 1.0;
+    t.max_init_level = 1;
+    t.proportions = TerrainProportions {
+        smooth_slope: 0.0,
+        rough_slope: 0.5,
+        stairs_up: 0.0,
+        stairs_down: 0.0,
+        discrete: 0.5,
+        flat: 0.0,
+    };
+    cfg
+}
+
+fn learner(cfg: &TrainConfig) -> Learner {
+    Learner::new(OBS_DIM, ACT_DIM, &cfg.learner, 0).expect("learner")
+}
+
+fn checkpoint(dir: &Path, cfg: &TrainConfig) -> PathBuf {
+    let path = dir.join("policy.safetensors");
+    save_policy(&path, &learner(cfg), cfg, &Progress::default()).expect("checkpoint");
+    path
+}
+
+/// Runs `rerun rrd verify` when the pip CLI is installed; says why not otherwise.
+fn verify_with_rerun_cli(path: &Path) {
+    if !viz::sink::on_path("rerun") {
+        println!(
+            "skipped `rerun rrd verify {}`: no `rerun` on PATH ({})",
+            path.display(),
+            viz::sink::VIEWER_PIP
+        );
+        return;
+    }
+    let out = Command::new("rerun")
+        .args(["rrd", "verify"])
+        .arg(path)
+        .output()
+        .expect("running rerun");
+    assert!(
+        out.status.success(),
+        "rerun rrd verify {} failed:\n{}\n{}",
+        path.display(),
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn record_play(
+    cfg: &TrainConfig,
+    opts: &PlayOptions,
+    path: &Path,
+) -> (viz::PlayReport, RrdSummary) {
+    let l = learner(cfg);
+    let rec = viz::open_recording(
+        viz::PLAY_APP_ID,
+        "test",
+        &RerunTarget::Save(path.into()),
+        viz::play_blueprint(),
+    )
+    .expect("recording");
+    let (report, rec) = viz::play(&l, &cfg.env, opts, Some(rec)).expect("play");
+    viz::finish_recording(rec.expect("the recording comes back")).expect("finish");
+    (report, viz::summarize_rrd(path).expect("read back"))
+}
+
+#[test]
+fn play_recording_has_one_transform_and_one_bar_chart_per_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("play.rrd");
+    let cfg = small_cfg(CriticKind::Iqn);
+    let opts = PlayOptions {
+        episodes: 2,
+        max_steps: Some(20),
+        flush_steps: 7,
+        ..PlayOptions::default()
+    };
+    let (report, s) = record_play(&cfg, &opts, &path);
+    assert_eq!(report.episodes.len(), 2);
+    // One frame at each reset plus one per step.
+    let frames: u64 = report.episodes.iter().map(|e| e.steps as u64 + 1).sum();
+    assert!(frames >= 4, "episodes too short: {report:?}");
+    for body in BODIES
+        .iter()
+        .chain(&["RL_hip", "RL_thigh", "RL_calf", "RL_foot"])
+    {
+        let e = s
+            .entity(&format!("world/robot/{body}"))
+            .unwrap_or_else(|| panic!("no entity for body {body}"));
+        assert_eq!(e.temporal_rows, frames, "transforms of {body}");
+        assert!(
+            e.components.iter().any(|c| c.contains("Transform3D")),
+            "{body}: {:?}",
+            e.components
+        );
+        assert!(
+            e.timelines.contains("sim_time") && e.timelines.contains("step"),
+            "{body}: {:?}",
+            e.timelines
+        );
+    }
+    // Static geometry under the bodies: trunk box, hip spheres, thigh/calf boxes, feet.
+    let trunk = s.entity("world/robot/trunk/trunk").expect("trunk geom");
+    assert!(trunk.static_rows >= 1 && trunk.temporal_rows == 0);
+    assert!(
+        trunk.components.iter().any(|c| c.starts_with("Boxes3D")),
+        "{:?}",
+        trunk.components
+    );
+    let foot = s.entity("world/robot/FR_foot/FR_foot").expect("foot geom");
+    assert!(
+        foot.components
+            .iter()
+            .any(|c| c.starts_with("Ellipsoids3D")),
+        "{:?}",
+        foot.components
+    );
+    assert!(s.entity("world/ground").expect("ground").static_rows >= 1);
+    // The critic: a bar chart per frame, CVaR/mean and IQR series.
+    let bars = s.entity("value/quantiles").expect("bar chart");
+    assert_eq!(bars.temporal_rows, frames);
+    assert!(
+        bars.components.iter().any(|c| c.starts_with("BarChart")),
+        "{:?}",
+        bars.components
+    );
+    for p in [
+        "value/stats",
+        "value/iqr",
+        "plots/velocity/vx",
+        "plots/velocity/vy",
+        "plots/velocity/yaw_rate",
+    ] {
+        let e = s.entity(p).unwrap_or_else(|| panic!("no {p}"));
+        assert_eq!(e.temporal_rows, frames, "{p}");
+        assert!(e.static_rows >= 1, "{p} has no series names");
+    }
+    assert_eq!(s.entity("plots/torques").unwrap().temporal_rows, frames);
+    assert_eq!(s.entity("plots/contacts").unwrap().temporal_rows, frames);
+    assert_eq!(s.entity("world/velocity").unwrap().temporal_rows, frames);
+    // Episode starts (and ends or cuts) are events.
+    assert!(s.entity("events").expect("events").temporal_rows >= 4);
+    // The layout travels with the recording.
+    assert!(
+        s.application_ids.contains(viz::PLAY_APP_ID),
+        "{:?}",
+        s.application_ids
+    );
+    assert!(
+        s.blueprint_chunks > 0 && s.blueprint_activations == 1,
+        "{} {}",
+        s.blueprint_chunks,
+        s.blueprint_activations
+    );
+    verify_with_rerun_cli(&path);
+}
+
+#[test]
+fn rough_terrain_is_logged_as_mesh_chunks_near_the_robot() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rough.rrd");
+    let cfg = rough_cfg();
+    let opts = PlayOptions {
+        episodes: 1,
+        max_steps: Some(5),
+        terrain_level: 2,
+        ..PlayOptions::default()
+    };
+    let (_, s) = record_play(&cfg, &opts, &path);
+    let chunks: Vec<&String> = s
+        .entities
+        .keys()
+        .filter(|k| k.starts_with("/world/terrain/chunk_"))
+        .collect();
+    assert!(
+        !chunks.is_empty(),
+        "no terrain chunks: {:?}",
+        s.entities.keys().collect::<Vec<_>>()
+    );
+    for c in &chunks {
+        let e = &s.entities[*c];
+        assert!(
+            e.static_rows >= 1 && e.components.iter().any(|c| c.starts_with("Mesh3D")),
+            "{c}: {e:?}"
+        );
+    }
+    assert!(
+        s.entity("world/ground").is_none(),
+        "a rough scene has no flat quad"
+    );
+}
+
+#[test]
+fn scalar_critic_logs_the_value_without_a_distribution() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("scalar.rrd");
+    let cfg = small_cfg(CriticKind::Scalar);
+    let opts = PlayOptions {
+        episodes: 1,
+        max_steps: Some(5),
+        ..PlayOptions::default()
+    };
+    let (report, s) = record_play(&cfg, &opts, &path);
+    assert!(s.entity("value/quantiles").is_none());
+    assert_eq!(
+        s.entity("value/stats").unwrap().temporal_rows,
+        report.episodes[0].steps as u64 + 1
+    );
+}
+
+#[test]
+fn value_probe_matches_the_learner() {
+    let cfg = small_cfg(CriticKind::Iqn);
+    let l = learner(&cfg);
+    let probe = ValueProbe::new(&l, 10);
+    assert_eq!(probe.taus().len(), 10);
+    assert_eq!(probe.label(), "CVaR_0.5");
+    let obs: Vec<f32> = (0..OBS_DIM)
+        .map(|i| ((i * 37 % 11) as f32 - 5.0) * 0.1)
+        .collect();
+    let r = probe.read(&l, &obs);
+    let want_q = l.value_quantiles(&obs, probe.taus());
+    assert_eq!(r.quantiles.len(), 10);
+    for (a, b) in r.quantiles.iter().zip(&want_q) {
+        assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+    }
+    assert!((r.distorted - l.distorted_value(&obs)[0]).abs() < 1e-5);
+    assert!((r.iqr - l.iqr(&obs)[0]).abs() < 1e-5);
+    let mean = want_q.iter().sum::<f32>() / 10.0;
+    assert!((r.mean - mean).abs() < 1e-5);
+}
+
+#[test]
+fn training_recording_has_metrics_per_iteration_and_evaluation_episodes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("train.rrd");
+    let cfg = small_cfg(CriticKind::Iqn);
+    let opts = TrainRecordingOptions {
+        eval_every: 1,
+        eval_steps: 10,
+    };
+    let mut recorder =
+        TrainRecorder::open(&RerunTarget::Save(path.clone()), "test run", &cfg, opts)
+            .expect("recorder");
+    let stop = Arc::new(AtomicBool::new(false));
+    let summary = rall::runner::train(cfg, &dir.path().join("run"), false, stop, &mut recorder)
+        .expect("train");
+    recorder.finish().expect("finish");
+    assert_eq!(summary.iterations_done, 2);
+    let s = viz::summarize_rrd(&path).expect("read back");
+    assert!(s.application_ids.contains(viz::TRAIN_APP_ID));
+    for p in [
+        "train/loss/policy",
+        "train/loss/value",
+        "train/learning_rate",
+        "train/std",
+        "train/steps_per_s",
+    ] {
+        let e = s.entity(p).unwrap_or_else(|| panic!("no {p}"));
+        assert_eq!(e.temporal_rows, 2, "{p}");
+        assert!(e.timelines.contains("iteration"), "{p}: {:?}", e.timelines);
+    }
+    // Two evaluation episodes of 10 steps (11 frames each, unless the robot fell).
+    let trunk = s.entity("world/robot/trunk").expect("trunk");
+    assert!(
+        trunk.temporal_rows > 2 && trunk.temporal_rows <= 22,
+        "{}",
+        trunk.temporal_rows
+    );
+    assert!(trunk.timelines.contains("iteration") && trunk.timelines.contains("sim_time"));
+    assert_eq!(
+        s.entity("value/quantiles").unwrap().temporal_rows,
+        trunk.temporal_rows
+    );
+    assert!(s.blueprint_activations == 1);
+    verify_with_rerun_cli(&path);
+}
+
+#[test]
+fn blueprint_files_decode() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("play.rbl");
+    viz::write_blueprint_file(&path, viz::PLAY_APP_ID, viz::play_blueprint()).expect("write");
+    let s = viz::summarize_rrd(&path).expect("read back");
+    assert!(s.blueprint_chunks > 0 && s.blueprint_activations == 1);
+    assert!(s.application_ids.contains(viz::PLAY_APP_ID));
+    assert!(s.entities.is_empty(), "a blueprint holds no recording data");
+}
+
+fn rall(dir: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_rall"));
+    c.current_dir(root())
+        .env("RERUN_ANALYTICS", "0")
+        .env("TMPDIR", dir);
+    c
+}
+
+#[test]
+fn cli_play_saves_a_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
+    let out_path = dir.path().join("out.rrd");
+    let out = rall(dir.path())
+        .args(["play", "--checkpoint"])
+        .arg(&ckpt)
+        .args(["--episodes", "1", "--steps-per-episode", "10", "--save"])
+        .arg(&out_path)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("rerun "), "{stdout}");
+    let s = viz::summarize_rrd(&out_path).unwrap();
+    assert_eq!(s.entity("world/robot/trunk").unwrap().temporal_rows, 11);
+}
+
+#[test]
+fn cli_play_takes_the_env_from_a_config_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
+    // A scenario: rough ground instead of the checkpoint's flat ground.
+    let scenario = dir.path().join("scenario.toml");
+    let mut env = rough_cfg().env;
+    env.episode.length_s = 0.2;
+    let text = toml::to_string(&toml::Table::from_iter([(
+        "env".to_string(),
+        toml::Value::try_from(&env).unwrap(),
+    )]))
+    .unwrap();
+    std::fs::write(&scenario, text).unwrap();
+    let out_path = dir.path().join("scenario.rrd");
+    let out = rall(dir.path())
+        .args(["play", "--checkpoint"])
+        .arg(&ckpt)
+        .arg("--config")
+        .arg(&scenario)
+        .arg("--save")
+        .arg(&out_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s = viz::summarize_rrd(&out_path).unwrap();
+    assert!(s
+        .entities
+        .keys()
+        .any(|k| k.starts_with("/world/terrain/chunk_")));
+    // 0.2 s = 10 steps: the scenario's episode length, not the checkpoint's 1 s.
+    assert_eq!(s.entity("world/robot/trunk").unwrap().temporal_rows, 11);
+}
+
+#[test]
+fn cli_play_without_a_viewer_fails_fast_with_what_to_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
+    // --connect to a port where nothing listens.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let t0 = std::time::Instant::now();
+    let out = rall(dir.path())
+        .args(["play", "--checkpoint"])
+        .arg(&ckpt)
+        .args(["--connect", &format!("127.0.0.1:{port}")])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("nothing is listening") && err.contains("pip install rerun-sdk"),
+        "{err}"
+    );
+    assert!(t0.elapsed().as_secs() < 20, "took {:?}", t0.elapsed());
+    // --spawn with no `rerun` on PATH (unless a viewer already listens on 9876).
+    if std::net::TcpStream::connect("127.0.0.1:9876").is_ok() {
+        println!("skipped the --spawn check: something listens on 127.0.0.1:9876");
+        return;
+    }
+    let empty = dir.path().join("empty-bin");
+    std::fs::create_dir_all(&empty).unwrap();
+    let out = rall(dir.path())
+        .env("PATH", &empty)
+        .args(["play", "--checkpoint"])
+        .arg(&ckpt)
+        .arg("--spawn")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("no `rerun` on PATH") && err.contains("pip install rerun-sdk==0.36"),
+        "{err}"
+    );
+}
+
+#[test]
+fn cli_play_needs_exactly_one_destination() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = rall(dir.path())
+        .args(["play", "--checkpoint", "x.safetensors"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let out = rall(dir.path())
+        .args([
+            "play",
+            "--checkpoint",
+            "x.safetensors",
+            "--spawn",
+            "--save",
+            "a.rrd",
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cannot be used with"));
+}
