@@ -60,41 +60,26 @@ pub fn write_observation<R: Rng>(
         out[i] = v.clamp(-cfg.clip, cfg.clip) as f32;
         i += 1;
     };
-    for k in 0..3 {
-        put(
-            state.base_lin_vel_body_mps[k],
-            s.lin_vel,
-            n.lin_vel,
-            &mut rng,
-        );
+    for &v in &state.base_lin_vel_body_mps {
+        put(v, s.lin_vel, n.lin_vel, &mut rng);
     }
-    for k in 0..3 {
-        put(
-            state.base_ang_vel_body_rad_s[k],
-            s.ang_vel,
-            n.ang_vel,
-            &mut rng,
-        );
+    for &w in &state.base_ang_vel_body_rad_s {
+        put(w, s.ang_vel, n.ang_vel, &mut rng);
     }
-    for k in 0..3 {
-        put(state.gravity_body[k], s.gravity, n.gravity, &mut rng);
+    for &g in &state.gravity_body {
+        put(g, s.gravity, n.gravity, &mut rng);
     }
-    for k in 0..3 {
-        put(command[k], cfg.command_scale[k], 0.0, &mut rng);
+    for (&c, &scale) in command.iter().zip(&cfg.command_scale) {
+        put(c, scale, 0.0, &mut rng);
     }
-    for k in 0..NUM_JOINTS {
-        put(
-            state.q_rad[k] - default_q_rad[k],
-            s.dof_pos,
-            n.dof_pos,
-            &mut rng,
-        );
+    for (&q, &q0) in state.q_rad.iter().zip(default_q_rad) {
+        put(q - q0, s.dof_pos, n.dof_pos, &mut rng);
     }
-    for k in 0..NUM_JOINTS {
-        put(state.qd_rad_s[k], s.dof_vel, n.dof_vel, &mut rng);
+    for &qd in &state.qd_rad_s {
+        put(qd, s.dof_vel, n.dof_vel, &mut rng);
     }
-    for k in 0..NUM_JOINTS {
-        put(previous_action[k] as f64, 1.0, 0.0, &mut rng);
+    for &a in &previous_action[..NUM_JOINTS] {
+        put(a as f64, 1.0, 0.0, &mut rng);
     }
     debug_assert_eq!(i, OBS_DIM);
 }

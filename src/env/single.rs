@@ -403,7 +403,7 @@ impl Env {
                 let every = (interval_s / self.cfg.control.policy_dt_s())
                     .round()
                     .max(1.0) as usize;
-                if self.step_in_episode > 0 && self.step_in_episode % every == 0 {
+                if self.step_in_episode > 0 && self.step_in_episode.is_multiple_of(every) {
                     self.random_kick(max_mps);
                     true
                 } else {
@@ -415,7 +415,7 @@ impl Env {
                 every_steps,
                 hold_steps,
             } => {
-                let start = self.step_in_episode > 0 && self.step_in_episode % every_steps == 0;
+                let start = self.step_in_episode > 0 && self.step_in_episode.is_multiple_of(every_steps);
                 if start {
                     let dir = self.rng.gen_range(0..4);
                     let f = [
@@ -464,7 +464,7 @@ impl Env {
         let every = (self.cfg.commands.resample_interval_s / self.cfg.control.policy_dt_s())
             .round()
             .max(1.0) as usize;
-        if self.step_in_episode % every == 0 {
+        if self.step_in_episode.is_multiple_of(every) {
             self.command = self.sample_command();
         }
     }
@@ -472,13 +472,14 @@ impl Env {
     /// Air time bookkeeping; returns each foot's air time at touchdown (0 if none).
     fn update_feet_air_time(&mut self, dt: f64) -> [f64; 4] {
         let mut touchdown = [0.0; 4];
-        for leg in 0..4 {
-            self.feet_air_time_s[leg] += dt;
-            if self.state.foot_contact[leg] {
-                if self.feet_air_time_s[leg] > dt {
-                    touchdown[leg] = self.feet_air_time_s[leg];
+        let feet = self.feet_air_time_s.iter_mut().zip(&self.state.foot_contact);
+        for (leg, (air_s, &contact)) in feet.enumerate() {
+            *air_s += dt;
+            if contact {
+                if *air_s > dt {
+                    touchdown[leg] = *air_s;
                 }
-                self.feet_air_time_s[leg] = 0.0;
+                *air_s = 0.0;
             }
         }
         touchdown
