@@ -67,7 +67,13 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     println!("episodes             {} ({:?} actions)", r.episodes, mode);
     println!("lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)", r.lin_vel_score);
     println!("yaw-rate tracking    {:.3}", r.yaw_rate_score);
-    println!("fall rate            {:.1}%", 100.0 * r.fall_rate);
+    println!(
+        "fall rate            {:.1}%   (trunk contact {}, tilt {}, physics failure {})",
+        100.0 * r.fall_rate,
+        r.trunk_contacts,
+        r.tilts,
+        r.unstable
+    );
     println!("mean episode length  {:.0} / {} steps", r.mean_episode_length_steps, r.max_episode_length_steps);
     Ok(())
 }

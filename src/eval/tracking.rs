@@ -23,6 +23,10 @@ pub struct TrackingReport {
     pub fall_rate: f64,
     pub mean_episode_length_steps: f64,
     pub max_episode_length_steps: usize,
+    /// Episodes ended by trunk contact, by tilt, by physics failure.
+    pub trunk_contacts: usize,
+    pub tilts: usize,
+    pub unstable: usize,
 }
 
 /// The training env config made into the tracking benchmark: flat ground, no
@@ -105,6 +109,7 @@ pub fn evaluate_tracking(
         .iter()
         .map(|e| e.map_or((max_steps, false), |e| (e.steps, e.end != EpisodeEnd::TimeOut)))
         .collect();
+    let ended = |end: EpisodeEnd| first.iter().flatten().filter(|e| e.end == end).count();
     let n = episodes.max(1) as f64;
     Ok(TrackingReport {
         episodes,
@@ -113,5 +118,8 @@ pub fn evaluate_tracking(
         fall_rate: lengths.iter().filter(|(_, fell)| *fell).count() as f64 / n,
         mean_episode_length_steps: lengths.iter().map(|(l, _)| *l as f64).sum::<f64>() / n,
         max_episode_length_steps: max_steps,
+        trunk_contacts: ended(EpisodeEnd::TrunkContact),
+        tilts: ended(EpisodeEnd::Tilt),
+        unstable: ended(EpisodeEnd::Unstable),
     })
 }
