@@ -142,6 +142,12 @@ fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
     assert!(e.contains("torque_limits_nm"), "{e}");
     let e = err("[env.reward]\nlin_vel_trackin = 5.0\n");
     assert!(e.contains("lin_vel_trackin"), "{e}");
+    let e = err("[learner]\ncvar_etta = 0.5\n");
+    assert!(e.contains("cvar_etta"), "{e}");
+    let e = err("[learner.ppo]\nclip = 0.2\n");
+    assert!(e.contains("clip"), "{e}");
+    let e = err("[learner]\ncvar_eta = 1.5\n");
+    assert!(e.contains("eta"), "{e}");
     let e = err("[runner]\nnum_envs = 0\n");
     assert!(e.contains("num_envs"), "{e}");
     let e = err("[env.commands]\nvx_mps = [1.0, -1.0]\n");

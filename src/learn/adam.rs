@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 /// Adam hyper-parameters (the learning rate lives in the PPO schedule).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(deny_unknown_fields, default)]
 pub struct AdamConfig {
     pub beta1: f32,
     pub beta2: f32,

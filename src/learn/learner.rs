@@ -24,7 +24,7 @@ pub enum CriticKind {
 
 /// All learner hyper-parameters; `Default` = the paper / rsl_rl.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(deny_unknown_fields, default)]
 pub struct LearnerConfig {
     pub ppo: PpoConfig,
     pub critic: CriticKind,

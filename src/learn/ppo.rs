@@ -37,7 +37,7 @@ pub enum GradClip {
 
 /// PPO hyper-parameters; `Default` = rsl_rl / the paper.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(deny_unknown_fields, default)]
 pub struct PpoConfig {
     /// Passes over the rollout per update.
     pub num_learning_epochs: usize,

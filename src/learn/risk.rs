@@ -13,7 +13,7 @@ pub const IQR_TAUS: [f32; 2] = [0.25, 0.75];
 
 /// A distortion risk measure.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "lowercase")]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
 pub enum Distortion {
     /// `CVaR_eta`: `beta(tau) = eta tau`, the mean of the lowest `eta` fraction of
     /// returns; `eta` in `(0, 1]`, `1` is risk neutral, RALL uses `0.5`.
