@@ -102,12 +102,6 @@ pub fn run(args: &PlayArgs) -> Result<()> {
         scene_seed: loaded.config.runner.seed,
         max_steps: args.steps_per_episode,
         terrain_level: args.terrain_level,
-        // A live viewer gets every step at once; a file gets chunks of a second.
-        flush_steps: if matches!(target, RerunTarget::Save(_)) {
-            viz::episode::DEFAULT_FLUSH_STEPS
-        } else {
-            1
-        },
         ..PlayOptions::default()
     };
     let (report, rec) = viz::play(&loaded.learner, &env_cfg, &opts, Some(rec))?;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 
 use super::episode::EpisodeLogger;
-use super::value::{ValueProbe, ValueReading, DEFAULT_NUM_BARS};
+use super::value::{ValueProbe, DEFAULT_NUM_BARS};
 use crate::env::terrain::Terrain;
 use crate::env::{build_scene, Env, EnvConfig, EpisodeEnd, Scene, OBS_DIM};
 use crate::learn::Learner;
@@ -102,11 +102,10 @@ impl ViewerEnv {
 }
 
 /// Runs one episode of `learner`'s mean action in `env`, logging every step when a
-/// logger is given (the critic is only evaluated then).
+/// logger is given (the critic is only evaluated then, by the logger).
 pub fn run_episode(
     learner: &Learner,
     env: &mut Env,
-    probe: &ValueProbe,
     mut logger: Option<&mut EpisodeLogger>,
     max_steps: Option<usize>,
     label: &str,
@@ -115,9 +114,8 @@ pub fn run_episode(
     let mut final_obs = vec![0.0f32; OBS_DIM];
     env.reset(&mut obs).context("resetting the env")?;
     let dt = env.config().control.policy_dt_s();
-    let read = |obs: &[f32]| -> ValueReading { probe.read(learner, obs) };
     if let Some(l) = logger.as_deref_mut() {
-        l.begin_episode(env, label, &read(&obs))?;
+        l.begin_episode(learner, env, label, &obs)?;
     }
     let limit = max_steps.unwrap_or(usize::MAX).min(env.max_steps());
     let mut ep = PlayedEpisode {
@@ -135,7 +133,7 @@ pub fn run_episode(
         ep.risk_penalties += r.risk.fired.iter().filter(|f| **f).count();
         ep.pushes += r.pushed as usize;
         if let Some(l) = logger.as_deref_mut() {
-            l.log_step(env, &r, &read(&obs), dt)?;
+            l.log_step(learner, env, &r, &obs, dt)?;
         }
         if r.done {
             ep.end = env.take_summary().map(|s| s.end);
@@ -168,16 +166,10 @@ pub fn play(
     let level = terrain
         .as_ref()
         .map_or(0, |t| opts.terrain_level.min(t.num_levels() - 1));
-    let probe = ValueProbe::new(learner, opts.num_bars);
     let mut logger = match rec {
         Some(rec) => {
-            let mut l = EpisodeLogger::new(
-                rec,
-                venv.env.robot(),
-                terrain,
-                probe.taus().to_vec(),
-                probe.label(),
-            )?;
+            let probe = ValueProbe::new(learner, opts.num_bars);
+            let mut l = EpisodeLogger::new(rec, venv.env.robot(), terrain, probe)?;
             l.set_flush_steps(opts.flush_steps);
             Some(l)
         }
@@ -191,7 +183,6 @@ pub fn play(
         let ep = run_episode(
             learner,
             &mut venv.env,
-            &probe,
             logger.as_mut(),
             opts.max_steps,
             &label,
@@ -201,7 +192,7 @@ pub fn play(
         report.episodes.push(ep);
     }
     let rec = match logger {
-        Some(l) => Some(l.finish()?),
+        Some(l) => Some(l.finish(learner)?),
         None => None,
     };
     Ok((report, rec))

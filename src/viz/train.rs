@@ -37,7 +37,6 @@ impl Default for TrainRecordingOptions {
 struct Eval {
     venv: ViewerEnv,
     logger: EpisodeLogger,
-    probe: ValueProbe,
 }
 
 /// The [`IterationObserver`] that logs a run to rerun.
@@ -123,36 +122,27 @@ impl TrainRecorder {
                 self.rec.clone(),
                 venv.env.robot(),
                 venv.terrain.clone(),
-                probe.taus().to_vec(),
-                probe.label(),
-            )?;
-            self.eval = Some(Eval {
-                venv,
-                logger,
                 probe,
-            });
+            )?;
+            self.eval = Some(Eval { venv, logger });
         }
         let ev = self.eval.as_mut().expect("built above");
         ev.venv.reseed(env_seed)?;
         ev.logger
-            .set_extra_timeline("iteration", iteration as i64)?;
+            .set_extra_timeline(learner, "iteration", iteration as i64)?;
         let label = format!("evaluation at iteration {iteration}");
         run_episode(
             learner,
             &mut ev.venv.env,
-            &ev.probe,
             Some(&mut ev.logger),
             Some(self.opts.eval_steps),
             &label,
         )?;
-        ev.logger.flush()
+        ev.logger.flush(learner)
     }
 
-    /// Flushes and closes the recording.
-    pub fn finish(mut self) -> Result<()> {
-        if let Some(ev) = self.eval.as_mut() {
-            ev.logger.flush()?;
-        }
+    /// Closes the recording (evaluation episodes are flushed as they end).
+    pub fn finish(self) -> Result<()> {
         drop(self.eval);
         finish_recording(self.rec)
     }
