@@ -1,0 +1,227 @@
+//! Running policies in a scenario: N robots on a [`VecEnv`] (rayon pool) with
+//! their [`ScenarioHook`]s, deterministic actions (the policy mean).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+
+use super::scenario::{ScenarioHook, ScenarioSetup};
+use crate::env::{Env, EnvConfig, EpisodeEnd, EpisodeSummary, VecEnv};
+use crate::learn::Learner;
+use crate::runner::load_policy;
+
+/// A policy under evaluation: a name for the tables, its networks, and the env
+/// config it was trained with (observation noise, PD, rewards).
+pub struct NamedPolicy {
+    pub name: String,
+    pub learner: Learner,
+    pub env: EnvConfig,
+    pub path: Option<PathBuf>,
+}
+
+impl NamedPolicy {
+    /// Loads a checkpoint written by `rall train`.
+    pub fn load(name: &str, path: &Path) -> Result<NamedPolicy> {
+        let p = load_policy(path).with_context(|| format!("policy {name}"))?;
+        Ok(NamedPolicy {
+            name: name.to_string(),
+            learner: p.learner,
+            env: p.config.env,
+            path: Some(path.to_path_buf()),
+        })
+    }
+
+    /// `NAME=PATH` -> (name, path).
+    pub fn parse_arg(arg: &str) -> Result<(String, PathBuf)> {
+        let (name, path) = arg
+            .split_once('=')
+            .with_context(|| format!("--policy {arg:?}: expected NAME=PATH"))?;
+        anyhow::ensure!(
+            !name.trim().is_empty() && !path.trim().is_empty(),
+            "--policy {arg:?}: expected NAME=PATH"
+        );
+        Ok((name.trim().to_string(), PathBuf::from(path.trim())))
+    }
+}
+
+/// N robots of one scenario, stepped together; hooks run around every step and
+/// after every (auto-)reset.
+pub struct ScenarioRun {
+    pub venv: VecEnv,
+    pub hooks: Vec<ScenarioHook>,
+    obs: Vec<f32>,
+    dones: Vec<bool>,
+}
+
+impl ScenarioRun {
+    pub fn new(setup: &ScenarioSetup, n: usize, threads: usize, seed: u64) -> Result<ScenarioRun> {
+        let (venv, hooks) = setup.vec_env(n, threads, seed)?;
+        let obs = venv.batch().obs.clone();
+        Ok(ScenarioRun {
+            venv,
+            hooks,
+            obs,
+            dones: vec![false; n],
+        })
+    }
+
+    pub fn num_envs(&self) -> usize {
+        self.dones.len()
+    }
+    /// Current observations, `n x OBS_DIM` (first of a new episode after a done).
+    pub fn obs(&self) -> &[f32] {
+        &self.obs
+    }
+    /// Which robots ended an episode in the last step (they have been reset).
+    pub fn dones(&self) -> &[bool] {
+        &self.dones
+    }
+    pub fn env(&self, i: usize) -> &Env {
+        &self.venv.envs()[i]
+    }
+
+    /// One policy step of every robot; returns the episodes that ended.
+    pub fn step(&mut self, actions: &[f32]) -> Vec<EpisodeSummary> {
+        for (h, e) in self.hooks.iter_mut().zip(self.venv.envs_mut()) {
+            h.before_step(e);
+        }
+        let b = self.venv.step(actions);
+        self.obs.copy_from_slice(&b.obs);
+        for (d, &x) in self.dones.iter_mut().zip(&b.dones) {
+            *d = x > 0.5;
+        }
+        for ((h, e), &d) in self
+            .hooks
+            .iter_mut()
+            .zip(self.venv.envs_mut())
+            .zip(&self.dones)
+        {
+            if d {
+                h.on_reset(e);
+            }
+        }
+        self.venv.drain_episodes().collect()
+    }
+
+    /// Whether robot `i`'s payload (container, arm base) touches the ground.
+    pub fn payload_on_ground(&self, i: usize) -> bool {
+        self.hooks[i].payload_on_ground(&self.venv.envs()[i])
+    }
+}
+
+/// How a robot's first episode ended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FirstEpisode {
+    /// Policy steps survived (the full length on a time-out).
+    pub steps: usize,
+    /// The env's reason; `None` when the payload touched the ground first.
+    pub end: Option<EpisodeEnd>,
+}
+
+impl FirstEpisode {
+    /// Fell (terminated, or the payload on the ground) before the time-out.
+    pub fn fell(&self) -> bool {
+        self.end != Some(EpisodeEnd::TimeOut)
+    }
+}
+
+/// Runs `n` robots of `setup` for one episode each under `policy`'s mean action.
+/// A robot's episode ends with the env's own episode or when its payload touches
+/// the ground. `observe(i, env, step)` sees every robot after each step of its
+/// first episode that did not end it.
+pub fn run_first_episodes(
+    policy: &Learner,
+    setup: &ScenarioSetup,
+    n: usize,
+    threads: usize,
+    seed: u64,
+    mut observe: impl FnMut(usize, &Env, usize),
+) -> Result<Vec<FirstEpisode>> {
+    let mut run = ScenarioRun::new(setup, n, threads, seed)?;
+    let max_steps = setup.env.max_episode_steps();
+    let mut first: Vec<Option<FirstEpisode>> = vec![None; n];
+    for step in 1..=max_steps {
+        let actions = policy.act_mean(run.obs());
+        for s in run.step(&actions) {
+            let f = &mut first[s.env_index];
+            if f.is_none() {
+                *f = Some(FirstEpisode {
+                    steps: s.steps,
+                    end: Some(s.end),
+                });
+            }
+        }
+        for (i, f) in first.iter_mut().enumerate() {
+            if f.is_some() {
+                continue;
+            }
+            if run.payload_on_ground(i) {
+                *f = Some(FirstEpisode {
+                    steps: step,
+                    end: None,
+                });
+            } else {
+                observe(i, run.env(i), step);
+            }
+        }
+        if first.iter().all(Option::is_some) {
+            break;
+        }
+    }
+    Ok(first
+        .into_iter()
+        .map(|f| {
+            f.unwrap_or(FirstEpisode {
+                steps: max_steps,
+                end: Some(EpisodeEnd::TimeOut),
+            })
+        })
+        .collect())
+}
+
+/// Linear-interpolation quantile (numpy's default) of `values` at `q` in [0, 1];
+/// NaN for no values.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
+    let lo = pos.floor() as usize;
+    let hi = pos.ceil() as usize;
+    v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
+}
+
+/// Mean of `values` (NaN for none).
+pub fn mean(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        f64::NAN
+    } else {
+        values.iter().sum::<f64>() / values.len() as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_interpolate_like_numpy() {
+        let v = [4.0, 1.0, 3.0, 2.0];
+        assert_eq!(quantile(&v, 0.0), 1.0);
+        assert_eq!(quantile(&v, 1.0), 4.0);
+        assert!((quantile(&v, 0.5) - 2.5).abs() < 1e-12);
+        assert!((quantile(&v, 0.25) - 1.75).abs() < 1e-12);
+        assert!(quantile(&[], 0.5).is_nan());
+    }
+
+    #[test]
+    fn policy_args_split_on_the_first_equals() {
+        let (n, p) = NamedPolicy::parse_arg("RALL=runs/a=b.safetensors").unwrap();
+        assert_eq!(n, "RALL");
+        assert_eq!(p, PathBuf::from("runs/a=b.safetensors"));
+        assert!(NamedPolicy::parse_arg("nopath").is_err());
+        assert!(NamedPolicy::parse_arg("=x").is_err());
+    }
+}
