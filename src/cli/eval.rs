@@ -5,7 +5,13 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
-use crate::eval::{evaluate_tracking, tracking_env, ActionMode};
+use crate::eval::report::write_outputs;
+use crate::eval::{
+    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env, ActionMode,
+    GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
+    ScenarioParams, TtfOptions,
+};
+use crate::learn::CriticKind;
 use crate::runner::load_policy;
 
 #[derive(Debug, Args)]
@@ -18,6 +24,114 @@ pub struct EvalArgs {
 pub enum EvalCommand {
     /// Velocity-command tracking on flat ground (noise and PD as in training).
     Tracking(TrackingArgs),
+    /// Time to Fall with payloads (ball, frozen arm, moving arm) x terrain (flat,
+    /// random) x pushes (off, on): the paper's table I.
+    Ttf(TtfArgs),
+    /// Success rate of walking off a platform: the paper's table II.
+    Platform(PlatformArgs),
+    /// Race-track returns (quantiles 0.25/0.5/0.75) per policy and for the IQR meta controller.
+    Race(RaceArgs),
+}
+
+/// Options shared by the robustness benchmarks.
+#[derive(Debug, Args)]
+pub struct BenchmarkArgs {
+    /// A policy to evaluate, as NAME=PATH (a checkpoint written by `rall train`); repeat it.
+    /// Each runs with its own checkpoint's observation noise, PD and rewards.
+    #[arg(long = "policy", value_name = "NAME=PATH")]
+    pub policies: Vec<String>,
+    /// Worker threads for the robots (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Folder for the .md, .csv and .json results.
+    #[arg(long, default_value = "eval-results")]
+    pub out: PathBuf,
+    /// Episode length in seconds (default: the checkpoint's; 8 s on the platform, 30 s on the race track).
+    #[arg(long, value_name = "S")]
+    pub episode_s: Option<f64>,
+    /// Push force (N), period and hold (policy steps) of the evaluation pushes.
+    #[arg(long, default_value_t = 100.0)]
+    pub push_force: f64,
+    #[arg(long, default_value_t = 300)]
+    pub push_every: usize,
+    #[arg(long, default_value_t = 50)]
+    pub push_hold: usize,
+    /// Turn off the friction and added-mass randomisation (paper table III ranges by default).
+    #[arg(long)]
+    pub no_randomization: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct TtfArgs {
+    #[command(flatten)]
+    pub common: BenchmarkArgs,
+    /// Trials with different seeds (scene and env).
+    #[arg(long, default_value_t = 3)]
+    pub seeds: usize,
+    /// Robots per seed, one episode each (in parallel).
+    #[arg(long, default_value_t = 10)]
+    pub repeats: usize,
+    /// First seed (the seeds are first, first + 1, ...).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Fixed command "vx,vy,yaw_rate" instead of the checkpoint's random commands.
+    #[arg(long, value_name = "VX,VY,WZ")]
+    pub command: Option<String>,
+    /// Loads to run (default all): ball, frozen_arm, moving_arm.
+    #[arg(long = "load", value_name = "LOAD")]
+    pub loads: Vec<String>,
+    /// Amplitude of the random rough terrain (m).
+    #[arg(long, default_value_t = 0.05)]
+    pub rough_amplitude: f64,
+}
+
+#[derive(Debug, Args)]
+pub struct PlatformArgs {
+    #[command(flatten)]
+    pub common: BenchmarkArgs,
+    /// Platform heights (m); repeat it (default 0.40 and 0.45).
+    #[arg(long = "height", value_name = "M")]
+    pub heights: Vec<f64>,
+    #[arg(long, default_value_t = 3)]
+    pub seeds: usize,
+    /// Robots per seed and height (in parallel).
+    #[arg(long, default_value_t = 50)]
+    pub repeats: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Forward speed command (m/s).
+    #[arg(long, default_value_t = 0.6)]
+    pub speed: f64,
+    /// The robot must still be up this long after the drop (s).
+    #[arg(long, default_value_t = 2.0)]
+    pub settle_s: f64,
+    /// Payload to carry on the drop (ball, frozen_arm, moving_arm; default none).
+    #[arg(long)]
+    pub load: Option<String>,
+}
+
+#[derive(Debug, Args)]
+pub struct RaceArgs {
+    #[command(flatten)]
+    pub common: BenchmarkArgs,
+    /// The meta controller: RISKY=PATH,SAFE=PATH,THRESHOLD=x[,HYSTERESIS=h][,HOLD=steps][,NAME=label].
+    /// RISKY is the CVaR_1 policy whose critic's IQR drives the switch, SAFE the CVaR_0.5 one;
+    /// PATH may be a checkpoint or the NAME of a --policy.
+    #[arg(long, value_name = "SPEC")]
+    pub meta: Option<String>,
+    #[arg(long, default_value_t = 50)]
+    pub agents: usize,
+    /// Episodes per agent.
+    #[arg(long, default_value_t = 10)]
+    pub episodes: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Seed of the course's obstacles and rough patches.
+    #[arg(long, default_value_t = 0)]
+    pub course_seed: u64,
+    /// Forward speed command (m/s).
+    #[arg(long, default_value_t = 0.6)]
+    pub speed: f64,
 }
 
 #[derive(Debug, Args)]
@@ -41,6 +155,9 @@ pub struct TrackingArgs {
 pub fn run(args: &EvalArgs) -> Result<()> {
     match &args.what {
         EvalCommand::Tracking(a) => tracking(a),
+        EvalCommand::Ttf(a) => ttf(a),
+        EvalCommand::Platform(a) => platform(a),
+        EvalCommand::Race(a) => race(a),
     }
 }
 
@@ -56,8 +173,19 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
     let policy = load_policy(&a.checkpoint)?;
     let env = tracking_env(&policy.config.env);
-    let mode = if a.stochastic { ActionMode::Sampled } else { ActionMode::Mean };
-    let r = evaluate_tracking(&policy.learner, &env, a.episodes, threads(a.threads), a.seed, mode)?;
+    let mode = if a.stochastic {
+        ActionMode::Sampled
+    } else {
+        ActionMode::Mean
+    };
+    let r = evaluate_tracking(
+        &policy.learner,
+        &env,
+        a.episodes,
+        threads(a.threads),
+        a.seed,
+        mode,
+    )?;
     println!(
         "checkpoint {} (iteration {}, {} env steps)",
         a.checkpoint.display(),
@@ -65,7 +193,10 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         policy.progress.total_env_steps
     );
     println!("episodes             {} ({:?} actions)", r.episodes, mode);
-    println!("lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)", r.lin_vel_score);
+    println!(
+        "lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)",
+        r.lin_vel_score
+    );
     println!("yaw-rate tracking    {:.3}", r.yaw_rate_score);
     println!(
         "fall rate            {:.1}%   (trunk contact {}, tilt {}, physics failure {})",
@@ -74,6 +205,257 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         r.tilts,
         r.unstable
     );
-    println!("mean episode length  {:.0} / {} steps", r.mean_episode_length_steps, r.max_episode_length_steps);
+    println!(
+        "mean episode length  {:.0} / {} steps",
+        r.mean_episode_length_steps, r.max_episode_length_steps
+    );
     Ok(())
+}
+
+fn load_policies(args: &[String]) -> Result<Vec<NamedPolicy>> {
+    let mut out: Vec<NamedPolicy> = Vec::new();
+    for a in args {
+        let (name, path) = NamedPolicy::parse_arg(a)?;
+        anyhow::ensure!(
+            out.iter().all(|p| p.name != name),
+            "--policy {name} is given twice"
+        );
+        out.push(NamedPolicy::load(&name, &path)?);
+    }
+    Ok(out)
+}
+
+fn scenario_params(c: &BenchmarkArgs) -> Result<ScenarioParams> {
+    anyhow::ensure!(
+        c.push_every > 0 && c.push_hold <= c.push_every,
+        "--push-hold must be <= --push-every (> 0)"
+    );
+    let mut p = ScenarioParams {
+        episode_length_s: c.episode_s,
+        push_force_n: c.push_force,
+        push_every_steps: c.push_every,
+        push_hold_steps: c.push_hold,
+        ..ScenarioParams::default()
+    };
+    if c.no_randomization {
+        p.friction = None;
+        p.added_base_mass_kg = None;
+    }
+    Ok(p)
+}
+
+fn parse_load(s: &str) -> Result<Load> {
+    Ok(match s.trim() {
+        "ball" => Load::Ball,
+        "frozen_arm" | "frozen-arm" => Load::FrozenArm,
+        "moving_arm" | "moving-arm" => Load::MovingArm,
+        "none" => Load::None,
+        other => anyhow::bail!("unknown load {other:?} (ball, frozen_arm, moving_arm, none)"),
+    })
+}
+
+fn seeds(first: u64, n: usize) -> Vec<u64> {
+    (0..n as u64).map(|i| first + i).collect()
+}
+
+fn finish(
+    out: &std::path::Path,
+    stem: &str,
+    md: &str,
+    csv: &str,
+    json: &serde_json::Value,
+) -> Result<()> {
+    println!("\n{md}");
+    let files = write_outputs(out, stem, md, csv, json)?;
+    let names: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
+    println!("wrote {}", names.join(", "));
+    Ok(())
+}
+
+fn ttf(a: &TtfArgs) -> Result<()> {
+    let policies = load_policies(&a.common.policies)?;
+    anyhow::ensure!(!policies.is_empty(), "give at least one --policy NAME=PATH");
+    anyhow::ensure!(
+        a.seeds > 0 && a.repeats > 0,
+        "--seeds and --repeats must be at least 1"
+    );
+    let mut params = scenario_params(&a.common)?;
+    params.rough.amplitude_m = a.rough_amplitude;
+    if let Some(c) = &a.command {
+        let v: Vec<f64> = c
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|_| anyhow::anyhow!("--command {c:?}: expected VX,VY,WZ"))?;
+        anyhow::ensure!(v.len() == 3, "--command {c:?}: expected VX,VY,WZ");
+        params.command = Some([v[0], v[1], v[2]]);
+    }
+    let loads = if a.loads.is_empty() {
+        Load::PAYLOADS.to_vec()
+    } else {
+        a.loads
+            .iter()
+            .map(|l| parse_load(l))
+            .collect::<Result<_>>()?
+    };
+    let opts = TtfOptions {
+        seeds: seeds(a.seed, a.seeds),
+        repeats: a.repeats,
+        threads: threads(a.common.threads),
+        loads,
+        terrains: vec![GroundKind::Flat, GroundKind::Rough],
+        pushes: vec![false, true],
+        params,
+    };
+    let report = evaluate_ttf(&policies, &opts, |c| {
+        eprintln!(
+            "{:<12} {:<7} push {:<5} {:<12} TTF {:.3} ({} of {} robots fell)",
+            c.load.name(),
+            c.terrain,
+            c.push,
+            c.policy,
+            c.ttf,
+            c.falls,
+            c.robots
+        )
+    })?;
+    finish(
+        &a.common.out,
+        "ttf",
+        &report.markdown(),
+        &report.csv(),
+        &report.json(),
+    )
+}
+
+fn platform(a: &PlatformArgs) -> Result<()> {
+    let policies = load_policies(&a.common.policies)?;
+    anyhow::ensure!(!policies.is_empty(), "give at least one --policy NAME=PATH");
+    anyhow::ensure!(
+        a.seeds > 0 && a.repeats > 0,
+        "--seeds and --repeats must be at least 1"
+    );
+    let mut params = scenario_params(&a.common)?;
+    params.forward_mps = a.speed;
+    let heights = if a.heights.is_empty() {
+        vec![0.40, 0.45]
+    } else {
+        a.heights.clone()
+    };
+    for &h in &heights {
+        anyhow::ensure!(h > 0.0 && h < 2.0, "--height {h}: must be in (0, 2) m");
+    }
+    let opts = PlatformOptions {
+        heights_m: heights,
+        seeds: seeds(a.seed, a.seeds),
+        repeats: a.repeats,
+        threads: threads(a.common.threads),
+        settle_s: a.settle_s,
+        load: a
+            .load
+            .as_deref()
+            .map(parse_load)
+            .transpose()?
+            .unwrap_or(Load::None),
+        params,
+    };
+    let report = evaluate_platform(&policies, &opts, |c| {
+        eprintln!(
+            "{:.2} m  {:<12} success {:.1}% ({} of {}; fell {}, not landed {}, fell before the edge {}, not reached {}; ends {:?})",
+            c.height_m,
+            c.policy,
+            c.success_pct,
+            c.success,
+            c.robots,
+            c.fell,
+            c.not_landed,
+            c.fell_before_drop,
+            c.not_reached,
+            c.ends
+        )
+    })?;
+    finish(
+        &a.common.out,
+        "platform",
+        &report.markdown(),
+        &report.csv(),
+        &report.json(),
+    )
+}
+
+fn race(a: &RaceArgs) -> Result<()> {
+    let mut policies = load_policies(&a.common.policies)?;
+    let meta = match &a.meta {
+        None => None,
+        Some(spec) => {
+            let m = MetaArg::parse(spec)?;
+            // A path not given as a --policy becomes a row of its own, named by its role.
+            let mut resolve = |role: &str, v: &str| -> Result<String> {
+                if policies.iter().any(|p| p.name == v) {
+                    return Ok(v.to_string());
+                }
+                let path = std::path::Path::new(v);
+                if let Some(p) = policies.iter().find(|p| p.path.as_deref() == Some(path)) {
+                    return Ok(p.name.clone());
+                }
+                let name = if policies.iter().any(|p| p.name == role) {
+                    format!("{role}:{v}")
+                } else {
+                    role.to_string()
+                };
+                policies.push(NamedPolicy::load(&name, path)?);
+                Ok(name)
+            };
+            let risky = resolve("RISKY", &m.risky)?;
+            let safe = resolve("SAFE", &m.safe)?;
+            let rp = policies.iter().find(|p| p.name == risky).expect("resolved");
+            if rp.learner.config().critic != CriticKind::Iqn {
+                eprintln!("warning: the RISKY policy {risky} has a scalar critic: its IQR is 0, the meta controller never switches");
+            }
+            let eta = rp.learner.config().cvar_eta;
+            if eta < 1.0 && rp.learner.config().distortion.is_none() {
+                eprintln!("note: the RISKY policy {risky} follows CVaR_{eta} (the paper's RISKY is CVaR_1)");
+            }
+            Some(MetaConfig {
+                name: m.name,
+                risky,
+                safe,
+                threshold: m.threshold,
+                hysteresis: m.hysteresis,
+                min_safe_steps: m.min_safe_steps,
+            })
+        }
+    };
+    anyhow::ensure!(
+        !policies.is_empty(),
+        "give at least one --policy NAME=PATH or --meta"
+    );
+    let mut params = scenario_params(&a.common)?;
+    params.forward_mps = a.speed;
+    let opts = RaceOptions {
+        agents: a.agents,
+        episodes: a.episodes,
+        threads: threads(a.common.threads),
+        seed: a.seed,
+        course_seed: a.course_seed,
+        params,
+    };
+    let report = evaluate_race(&policies, meta.as_ref(), &opts, |r| {
+        eprintln!(
+            "{:<16} returns q0.25 {:.3}  q0.5 {:.3}  q0.75 {:.3}  ({} episodes, {:.1}% falls)",
+            r.name,
+            r.q25,
+            r.q50,
+            r.q75,
+            r.episodes,
+            100.0 * r.fall_fraction
+        )
+    })?;
+    finish(
+        &a.common.out,
+        "race",
+        &report.markdown(),
+        &report.csv(),
+        &report.json(),
+    )
 }

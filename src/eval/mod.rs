@@ -2,17 +2,26 @@
 //!
 //! - [`scenario`]: the robustness scenarios by name (payloads, pushes, rough
 //!   ground, platform, race course): env config + model + per-env hook.
+//! - [`ttf`]: Time to Fall (paper table I); [`platform`]: platform drops
+//!   (table II); [`race`]: race-track returns and the IQR meta controller (fig. 4).
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
 
 pub mod ground;
 pub mod mjcf;
+pub mod platform;
+pub mod race;
+pub mod report;
 pub mod rollout;
 pub mod scenario;
 pub mod tracking;
+pub mod ttf;
 
+pub use platform::{evaluate_platform, DropOutcome, DropWatch, PlatformOptions, PlatformReport};
+pub use race::{evaluate_race, MetaArg, MetaConfig, MetaSwitch, RaceOptions, RaceReport};
 pub use rollout::{run_first_episodes, FirstEpisode, NamedPolicy, ScenarioRun};
 pub use scenario::{
     build_named_scenario, build_scenario, GroundKind, Load, ScenarioHook, ScenarioParams,
     ScenarioSetup, ScenarioSpec,
 };
 pub use tracking::{evaluate_tracking, tracking_env, ActionMode, TrackingReport};
+pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport};
