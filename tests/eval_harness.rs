@@ -405,6 +405,18 @@ fn platform_and_race_tables_with_untrained_checkpoints() {
     }
     let log = r.rows[2].meta.as_ref().unwrap();
     assert!(log.safe_fraction >= 0.0 && log.safe_fraction <= 1.0);
+    // Threshold 0: every step runs on SAFE; the IQR bins cover all robot-steps.
+    assert!(log.safe_fraction > 0.99, "{log:?}");
+    let binned: u64 = log.iqr_by_x.iter().map(|b| b.steps).sum();
+    assert!(
+        binned > 0 && binned == log.robot_steps,
+        "{binned} of {}",
+        log.robot_steps
+    );
+    assert!(log
+        .iqr_by_x
+        .iter()
+        .all(|b| b.mean_iqr >= 0.0 && b.safe_fraction > 0.99));
     let md = r.markdown();
     println!("{md}");
     assert!(md.contains("| Meta |") && md.contains("switches to SAFE"));

@@ -204,8 +204,56 @@ pub struct MetaLog {
     pub switches_per_episode: f64,
     /// Fraction of robot-steps acted by SAFE.
     pub safe_fraction: f64,
+    /// Robot-steps the controller decided.
+    pub robot_steps: u64,
     /// IQR of the RISKY critic over all robot-steps: quantiles 0.25 / 0.5 / 0.75 / 0.95.
     pub iqr_quantiles: [f64; 4],
+    /// Where along the course the IQR is high: the RISKY critic's mean IQR and
+    /// the fraction of steps on SAFE per 0.5 m of trunk x (bins with steps only).
+    pub iqr_by_x: Vec<IqrBin>,
+}
+
+/// Robot-steps whose trunk x fell in [x0, x0 + 0.5).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct IqrBin {
+    pub x0_m: f64,
+    pub steps: u64,
+    pub mean_iqr: f64,
+    pub safe_fraction: f64,
+}
+
+/// Width of the [`IqrBin`]s (m).
+const IQR_BIN_M: f64 = 0.5;
+
+/// Accumulates IQR and SAFE use by trunk x.
+#[derive(Debug, Default)]
+struct IqrByX {
+    /// bin index (floor(x / width)) -> (steps, IQR sum, steps on SAFE)
+    bins: std::collections::BTreeMap<i64, (u64, f64, u64)>,
+}
+
+impl IqrByX {
+    fn add(&mut self, x: f64, iqr: f64, safe: bool) {
+        if !x.is_finite() {
+            return;
+        }
+        let b = self.bins.entry((x / IQR_BIN_M).floor() as i64).or_default();
+        b.0 += 1;
+        b.1 += iqr;
+        b.2 += safe as u64;
+    }
+
+    fn bins(&self) -> Vec<IqrBin> {
+        self.bins
+            .iter()
+            .map(|(&k, &(n, sum, safe))| IqrBin {
+                x0_m: k as f64 * IQR_BIN_M,
+                steps: n,
+                mean_iqr: sum / n as f64,
+                safe_fraction: safe as f64 / n as f64,
+            })
+            .collect()
+    }
 }
 
 /// One row: a policy (or the meta controller) over all its episodes.
@@ -302,6 +350,7 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
         Driver::Single(_) => None,
     };
     let mut iqrs: Vec<f64> = Vec::new();
+    let mut by_x = IqrByX::default();
     for _ in 0..max_steps {
         let actions = match driver {
             Driver::Single(p) => p.learner.act_mean(run.obs()),
@@ -310,6 +359,9 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
                 iqrs.extend(iqr.iter().map(|&x| x as f64));
                 let sw = switch.as_mut().expect("meta switch");
                 let use_safe = sw.update(&iqr).to_vec();
+                for (i, (&q, &safe)) in iqr.iter().zip(&use_safe).enumerate() {
+                    by_x.add(run.env(i).robot().base_pos_m()[0], q as f64, safe);
+                }
                 let mut a = risky.learner.act_mean(run.obs());
                 if use_safe.iter().any(|&s| s) {
                     let b = safe.learner.act_mean(run.obs());
@@ -352,7 +404,9 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
             switches_to_risky: sw.to_risky,
             switches_per_episode: sw.to_safe as f64 / eps.len().max(1) as f64,
             safe_fraction: sw.safe_fraction(),
+            robot_steps: sw.steps,
             iqr_quantiles: [0.25, 0.5, 0.75, 0.95].map(|q| quantile(&iqrs, q)),
+            iqr_by_x: by_x.bins(),
         }),
         _ => None,
     };
