@@ -22,13 +22,13 @@
 //! `step` (policy steps), plus any extra constant sequence (e.g. `iteration` for
 //! evaluation episodes during training).
 //!
-//! Per-step data is buffered and sent as columns (one chunk per entity per flush),
-//! and the critic reads the buffered observations in one batch at the flush (about
-//! 6x cheaper per step than one observation at a time), which keeps logging cheap
-//! next to the physics; events go out at once.
+//! Per-step data is buffered and handed, every [`DEFAULT_FLUSH_STEPS`] steps, to a
+//! worker thread that reads the critic for the whole batch (about 6x cheaper per
+//! step than one observation at a time) and sends one chunk per entity, while the
+//! simulation goes on; events and terrain go out at once from the caller's thread.
 
 use std::collections::HashSet;
-use std::sync::Arc;
+use std::sync::{mpsc, Arc};
 
 use anyhow::{Context, Result};
 use rerun::{RecordingStream, TimeColumn};
@@ -40,7 +40,7 @@ use crate::env::risk::NUM_RISK_TERMS;
 use crate::env::state::roll_pitch_yaw;
 use crate::env::terrain::Terrain;
 use crate::env::{Env, StepResult};
-use crate::learn::Learner;
+use crate::learn::{ActorCritic, Learner};
 use crate::robot::{Robot, LEGS};
 use crate::sim::ObjKind;
 
@@ -73,17 +73,21 @@ struct Columns {
     arrows_vec: Vec<[f32; 3]>,
     /// Observations of the frames (n x obs_dim), read by the critic at the flush.
     obs: Vec<f32>,
+    extra_timeline: Option<(&'static str, i64)>,
 }
 
 impl Columns {
     fn len(&self) -> usize {
         self.time_s.len()
     }
-    fn clear(&mut self) {
-        let nb = self.body_pos.len();
+    fn is_empty(&self) -> bool {
+        self.time_s.is_empty()
+    }
+    /// Empty, with room for `bodies` bodies.
+    fn reset(&mut self, bodies: usize) {
         *self = Columns {
-            body_pos: vec![Vec::new(); nb],
-            body_quat: vec![Vec::new(); nb],
+            body_pos: vec![Vec::new(); bodies],
+            body_quat: vec![Vec::new(); bodies],
             ..Default::default()
         };
     }
@@ -94,7 +98,9 @@ pub struct EpisodeLogger {
     rec: RecordingStream,
     /// (body id, entity path) of every robot body.
     bodies: Vec<(usize, String)>,
-    probe: ValueProbe,
+    /// The policy of the current episode (the worker's critic).
+    policy: Option<Arc<ActorCritic>>,
+    worker: Worker,
     terrain: Option<Arc<Terrain>>,
     logged_chunks: HashSet<(usize, usize)>,
     extra_timeline: Option<(&'static str, i64)>,
@@ -226,10 +232,16 @@ impl EpisodeLogger {
             )?;
         }
         let nb = bodies.len();
+        let worker = Worker::spawn(
+            rec.clone(),
+            bodies.iter().map(|(_, p)| p.clone()).collect(),
+            probe,
+        )?;
         Ok(EpisodeLogger {
             rec,
             bodies,
-            probe,
+            policy: None,
+            worker,
             terrain,
             logged_chunks: HashSet::new(),
             extra_timeline: None,
@@ -257,13 +269,8 @@ impl EpisodeLogger {
     }
 
     /// Tags every following row with a constant sequence value (e.g. `iteration`).
-    pub fn set_extra_timeline(
-        &mut self,
-        learner: &Learner,
-        name: &'static str,
-        value: i64,
-    ) -> Result<()> {
-        self.flush(learner)?;
+    pub fn set_extra_timeline(&mut self, name: &'static str, value: i64) -> Result<()> {
+        self.flush()?;
         self.extra_timeline = Some((name, value));
         Ok(())
     }
@@ -321,14 +328,15 @@ impl EpisodeLogger {
                 env.terrain_type
             ),
         )?;
-        self.record(learner, env, obs, None)
+        self.flush()?;
+        self.policy = Some(Arc::new(learner.actor_critic().clone()));
+        self.record(env, obs, None)
     }
 
     /// Logs the frame after a policy step: `dt_s` later, the state the step produced
     /// and (for the critic) `obs`, the observation it returned.
     pub fn log_step(
         &mut self,
-        learner: &Learner,
         env: &Env,
         result: &StepResult,
         obs: &[f32],
@@ -336,16 +344,10 @@ impl EpisodeLogger {
     ) -> Result<()> {
         self.time_s += dt_s;
         self.step += 1;
-        self.record(learner, env, obs, Some(result))
+        self.record(env, obs, Some(result))
     }
 
-    fn record(
-        &mut self,
-        learner: &Learner,
-        env: &Env,
-        obs: &[f32],
-        result: Option<&StepResult>,
-    ) -> Result<()> {
+    fn record(&mut self, env: &Env, obs: &[f32], result: Option<&StepResult>) -> Result<()> {
         let robot = env.robot();
         let base = robot.base_pos_m();
         self.ensure_terrain_near(base)?;
@@ -380,7 +382,7 @@ impl EpisodeLogger {
             .extend([f32x3(cmd_world), [v[0] as f32, v[1] as f32, 0.0]]);
         c.obs.extend_from_slice(obs);
         if c.len() >= self.flush_steps {
-            self.flush(learner)?;
+            self.flush()?;
         }
         Ok(())
     }
@@ -507,91 +509,159 @@ impl EpisodeLogger {
         Ok(())
     }
 
-    /// Sends the buffered steps as columns.
-    pub fn flush(&mut self, learner: &Learner) -> Result<()> {
-        let n = self.cols.len();
-        if n == 0 {
+    /// Hands the buffered steps to the worker (critic + columns); returns at once
+    /// unless two batches are already waiting.
+    pub fn flush(&mut self) -> Result<()> {
+        if self.cols.is_empty() {
             return Ok(());
         }
-        let c = std::mem::take(&mut self.cols);
-        self.cols.clear();
-        self.cols.body_pos = vec![Vec::new(); self.bodies.len()];
-        self.cols.body_quat = vec![Vec::new(); self.bodies.len()];
-        let mut index = vec![
-            TimeColumn::new_duration_secs("sim_time", c.time_s),
-            TimeColumn::new_sequence("step", c.step),
-        ];
-        if let Some((name, v)) = &self.extra_timeline {
-            index.push(TimeColumn::new_sequence(*name, std::iter::repeat_n(*v, n)));
-        }
-        // The critic, once for the whole batch of frames.
-        let readings = self.probe.read_batch(learner, &c.obs);
-        let stats: Vec<f64> = readings
-            .iter()
-            .flat_map(|r| [r.mean as f64, r.distorted as f64])
-            .collect();
-        let iqr: Vec<f64> = readings.iter().map(|r| r.iqr as f64).collect();
-        let rec = &self.rec;
-        let send = |path: &str, cols: Vec<rerun::SerializedComponentColumn>| -> Result<()> {
-            rec.send_columns(path, index.clone(), cols)
-                .with_context(|| format!("logging {path}"))?;
-            Ok(())
-        };
-        for (i, (_, path)) in self.bodies.iter().enumerate() {
-            send(
-                path,
-                rerun::Transform3D::update_fields()
-                    .with_many_translation(c.body_pos[i].iter().copied())
-                    .with_many_quaternion(
-                        c.body_quat[i]
-                            .iter()
-                            .map(|q| rerun::Quaternion::from_xyzw(*q)),
-                    )
-                    .columns_of_unit_batches()?
-                    .collect(),
-            )?;
-        }
-        let scalars = |vals: &[f64], k: usize| -> Result<Vec<rerun::SerializedComponentColumn>> {
-            Ok(rerun::Scalars::new(vals.iter().copied())
-                .columns(std::iter::repeat_n(k, vals.len() / k))?
-                .collect())
-        };
-        send("plots/velocity/vx", scalars(&c.vx, 2)?)?;
-        send("plots/velocity/vy", scalars(&c.vy, 2)?)?;
-        send("plots/velocity/yaw_rate", scalars(&c.wz, 2)?)?;
-        send("plots/torques", scalars(&c.torques, c.torques.len() / n)?)?;
-        send("plots/contacts", scalars(&c.contacts, 4)?)?;
-        send("value/stats", scalars(&stats, 2)?)?;
-        send("value/iqr", scalars(&iqr, 1)?)?;
-        send(
-            "world/velocity",
-            rerun::Arrows3D::update_fields()
-                .with_vectors(c.arrows_vec.iter().copied())
-                .with_origins(c.arrows_origin.iter().copied())
-                .columns(std::iter::repeat_n(2, n))?
-                .collect(),
-        )?;
-        if !self.probe.taus().is_empty() {
-            send(
-                "value/quantiles",
-                rerun::BarChart::update_fields()
-                    .with_many_values(
-                        readings
-                            .into_iter()
-                            .map(|r| rerun::datatypes::TensorData::from(r.quantiles)),
-                    )
-                    .columns_of_unit_batches()?
-                    .collect(),
-            )?;
+        let mut cols = std::mem::take(&mut self.cols);
+        self.cols.reset(self.bodies.len());
+        cols.extra_timeline = self.extra_timeline;
+        let ac = self
+            .policy
+            .clone()
+            .context("the logger has no policy: call begin_episode first")?;
+        if self.worker.tx.send(Job { cols, ac }).is_err() {
+            // The worker stopped on an error: report it.
+            return self.join_worker();
         }
         Ok(())
     }
 
-    /// Flushes and hands back the recording (to log more, or to close it).
-    pub fn finish(mut self, learner: &Learner) -> Result<RecordingStream> {
-        self.flush(learner)?;
-        Ok(self.rec)
+    fn join_worker(&mut self) -> Result<()> {
+        let (tx, _) = mpsc::sync_channel(1);
+        drop(std::mem::replace(&mut self.worker.tx, tx));
+        match self.worker.handle.take() {
+            Some(h) => h
+                .join()
+                .map_err(|_| anyhow::anyhow!("the rerun logging thread panicked"))?,
+            None => Ok(()),
+        }
     }
+
+    /// Flushes, waits for the worker and hands back the recording (to log more, or to close it).
+    pub fn finish(mut self) -> Result<RecordingStream> {
+        self.flush()?;
+        self.join_worker()?;
+        Ok(self.rec.clone())
+    }
+}
+
+impl Drop for EpisodeLogger {
+    fn drop(&mut self) {
+        let _ = self.join_worker();
+    }
+}
+
+/// A batch of frames for the worker, with the policy that produced them.
+struct Job {
+    cols: Columns,
+    ac: Arc<ActorCritic>,
+}
+
+struct Worker {
+    tx: mpsc::SyncSender<Job>,
+    handle: Option<std::thread::JoinHandle<Result<()>>>,
+}
+
+impl Worker {
+    /// The thread that reads the critic and sends the columns, so the simulation
+    /// goes on meanwhile (jobs are handled in order).
+    fn spawn(rec: RecordingStream, bodies: Vec<String>, probe: ValueProbe) -> Result<Worker> {
+        let (tx, rx) = mpsc::sync_channel::<Job>(2);
+        let handle = std::thread::Builder::new()
+            .name("rall-viz".into())
+            .spawn(move || -> Result<()> {
+                for job in rx {
+                    send_batch(&rec, &bodies, &probe, &job.ac, job.cols)?;
+                }
+                Ok(())
+            })
+            .context("starting the logging thread")?;
+        Ok(Worker {
+            tx,
+            handle: Some(handle),
+        })
+    }
+}
+
+/// Reads the critic for a batch of frames and sends every per-step entity as columns.
+fn send_batch(
+    rec: &RecordingStream,
+    bodies: &[String],
+    probe: &ValueProbe,
+    ac: &ActorCritic,
+    c: Columns,
+) -> Result<()> {
+    let n = c.len();
+    let mut index = vec![
+        TimeColumn::new_duration_secs("sim_time", c.time_s),
+        TimeColumn::new_sequence("step", c.step),
+    ];
+    if let Some((name, v)) = c.extra_timeline {
+        index.push(TimeColumn::new_sequence(name, std::iter::repeat_n(v, n)));
+    }
+    // The critic, once for the whole batch of frames.
+    let readings = probe.read_batch_ac(ac, &c.obs);
+    let stats: Vec<f64> = readings
+        .iter()
+        .flat_map(|r| [r.mean as f64, r.distorted as f64])
+        .collect();
+    let iqr: Vec<f64> = readings.iter().map(|r| r.iqr as f64).collect();
+    let send = |path: &str, cols: Vec<rerun::SerializedComponentColumn>| -> Result<()> {
+        rec.send_columns(path, index.clone(), cols)
+            .with_context(|| format!("logging {path}"))?;
+        Ok(())
+    };
+    for (i, path) in bodies.iter().enumerate() {
+        send(
+            path,
+            rerun::Transform3D::update_fields()
+                .with_many_translation(c.body_pos[i].iter().copied())
+                .with_many_quaternion(
+                    c.body_quat[i]
+                        .iter()
+                        .map(|q| rerun::Quaternion::from_xyzw(*q)),
+                )
+                .columns_of_unit_batches()?
+                .collect(),
+        )?;
+    }
+    let scalars = |vals: &[f64], k: usize| -> Result<Vec<rerun::SerializedComponentColumn>> {
+        Ok(rerun::Scalars::new(vals.iter().copied())
+            .columns(std::iter::repeat_n(k, vals.len() / k))?
+            .collect())
+    };
+    send("plots/velocity/vx", scalars(&c.vx, 2)?)?;
+    send("plots/velocity/vy", scalars(&c.vy, 2)?)?;
+    send("plots/velocity/yaw_rate", scalars(&c.wz, 2)?)?;
+    send("plots/torques", scalars(&c.torques, c.torques.len() / n)?)?;
+    send("plots/contacts", scalars(&c.contacts, 4)?)?;
+    send("value/stats", scalars(&stats, 2)?)?;
+    send("value/iqr", scalars(&iqr, 1)?)?;
+    send(
+        "world/velocity",
+        rerun::Arrows3D::update_fields()
+            .with_vectors(c.arrows_vec.iter().copied())
+            .with_origins(c.arrows_origin.iter().copied())
+            .columns(std::iter::repeat_n(2, n))?
+            .collect(),
+    )?;
+    if !probe.taus().is_empty() {
+        send(
+            "value/quantiles",
+            rerun::BarChart::update_fields()
+                .with_many_values(
+                    readings
+                        .into_iter()
+                        .map(|r| rerun::datatypes::TensorData::from(r.quantiles)),
+                )
+                .columns_of_unit_batches()?
+                .collect(),
+        )?;
+    }
+    Ok(())
 }
 
 fn f32x3(v: [f64; 3]) -> [f32; 3] {

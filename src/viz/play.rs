@@ -133,7 +133,7 @@ pub fn run_episode(
         ep.risk_penalties += r.risk.fired.iter().filter(|f| **f).count();
         ep.pushes += r.pushed as usize;
         if let Some(l) = logger.as_deref_mut() {
-            l.log_step(learner, env, &r, &obs, dt)?;
+            l.log_step(env, &r, &obs, dt)?;
         }
         if r.done {
             ep.end = env.take_summary().map(|s| s.end);
@@ -192,7 +192,7 @@ pub fn play(
         report.episodes.push(ep);
     }
     let rec = match logger {
-        Some(l) => Some(l.finish(learner)?),
+        Some(l) => Some(l.finish()?),
         None => None,
     };
     Ok((report, rec))

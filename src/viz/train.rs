@@ -129,7 +129,7 @@ impl TrainRecorder {
         let ev = self.eval.as_mut().expect("built above");
         ev.venv.reseed(env_seed)?;
         ev.logger
-            .set_extra_timeline(learner, "iteration", iteration as i64)?;
+            .set_extra_timeline("iteration", iteration as i64)?;
         let label = format!("evaluation at iteration {iteration}");
         run_episode(
             learner,
@@ -138,12 +138,14 @@ impl TrainRecorder {
             Some(self.opts.eval_steps),
             &label,
         )?;
-        ev.logger.flush(learner)
+        ev.logger.flush()
     }
 
-    /// Closes the recording (evaluation episodes are flushed as they end).
+    /// Waits for the evaluation episodes to be logged and closes the recording.
     pub fn finish(self) -> Result<()> {
-        drop(self.eval);
+        if let Some(ev) = self.eval {
+            ev.logger.finish()?;
+        }
         finish_recording(self.rec)
     }
 }

@@ -2,7 +2,7 @@
 //! their mean, the distorted value the actor follows and the IQR, from one critic
 //! evaluation.
 
-use crate::learn::{CriticKind, Distortion, Learner};
+use crate::learn::{ActorCritic, CriticKind, Distortion, Learner};
 
 /// Bars of the quantile chart by default.
 pub const DEFAULT_NUM_BARS: usize = 32;
@@ -91,6 +91,11 @@ impl ValueProbe {
     /// Reads the critic at `n` observations (`obs`: `n x obs_dim`) in one call,
     /// much cheaper per observation than `n` calls.
     pub fn read_batch(&self, learner: &Learner, obs: &[f32]) -> Vec<ValueReading> {
+        self.read_batch_ac(learner.actor_critic(), obs)
+    }
+
+    /// [`Self::read_batch`] on the networks alone (a snapshot another thread can own).
+    pub fn read_batch_ac(&self, learner: &ActorCritic, obs: &[f32]) -> Vec<ValueReading> {
         if obs.is_empty() {
             return Vec::new();
         }
