@@ -40,7 +40,12 @@ fn tiny_policy(dir: &Path, name: &str, eta: f32, seed: u64) -> NamedPolicy {
 }
 
 fn ep(steps: usize, end: Option<EpisodeEnd>) -> FirstEpisode {
-    FirstEpisode { steps, end }
+    FirstEpisode {
+        steps,
+        end,
+        walked_m: steps as f64 / 100.0,
+        commanded_m: 10.0,
+    }
 }
 
 #[test]
@@ -64,6 +69,7 @@ fn ttf_arithmetic_on_scripted_episodes() {
         ("random", true, Load::Ball)
     );
     assert!((c.mean_steps - 625.0).abs() < 1e-12);
+    assert!((c.walked_ratio - 37.5 / 60.0).abs() < 1e-12);
     assert_eq!(time_to_fall(&[1000; 4], 1000), 1.0);
     assert!((time_to_fall(&[0, 500], 1000) - 0.25).abs() < 1e-12);
 }
@@ -294,6 +300,7 @@ fn eval_ttf_prints_a_complete_table_with_an_untrained_checkpoint() {
         assert_eq!((c.robots, c.episode_steps), (4, 100));
         assert!((0.0..=1.0).contains(&c.ttf) && c.ttf > 0.0, "{c:?}");
         assert_eq!(c.ttf_per_seed.len(), 2);
+        assert!(c.walked_ratio.is_finite() && c.walked_ratio >= 0.0, "{c:?}");
     }
     let md = report.markdown();
     println!("{md}");

@@ -309,14 +309,15 @@ fn ttf(a: &TtfArgs) -> Result<()> {
     };
     let report = evaluate_ttf(&policies, &opts, |c| {
         eprintln!(
-            "{:<12} {:<7} push {:<5} {:<12} TTF {:.3} ({} of {} robots fell)",
+            "{:<12} {:<7} push {:<5} {:<12} TTF {:.3} ({} of {} robots fell; walked {:.0}% of the commanded distance)",
             c.load.name(),
             c.terrain,
             c.push,
             c.policy,
             c.ttf,
             c.falls,
-            c.robots
+            c.robots,
+            100.0 * c.walked_ratio
         )
     })?;
     finish(

@@ -116,6 +116,10 @@ pub struct FirstEpisode {
     pub steps: usize,
     /// The env's reason; `None` when the payload touched the ground first.
     pub end: Option<EpisodeEnd>,
+    /// Horizontal distance from the spawn point at the end (m).
+    pub walked_m: f64,
+    /// Integral of the commanded planar speed over the episode (m).
+    pub commanded_m: f64,
 }
 
 impl FirstEpisode {
@@ -139,8 +143,18 @@ pub fn run_first_episodes(
 ) -> Result<Vec<FirstEpisode>> {
     let mut run = ScenarioRun::new(setup, n, threads, seed)?;
     let max_steps = setup.env.max_episode_steps();
+    let dt = setup.env.control.policy_dt_s();
     let mut first: Vec<Option<FirstEpisode>> = vec![None; n];
+    let mut commanded = vec![0.0f64; n];
+    let walked = |env: &Env| {
+        let p = env.robot().base_pos_m();
+        (p[0] - setup.spawn_m[0]).hypot(p[1] - setup.spawn_m[1])
+    };
     for step in 1..=max_steps {
+        for (i, c) in commanded.iter_mut().enumerate() {
+            let cmd = run.env(i).command();
+            *c += cmd[0].hypot(cmd[1]) * dt;
+        }
         let actions = policy.act_mean(run.obs());
         for s in run.step(&actions) {
             let f = &mut first[s.env_index];
@@ -148,6 +162,8 @@ pub fn run_first_episodes(
                 *f = Some(FirstEpisode {
                     steps: s.steps,
                     end: Some(s.end),
+                    walked_m: s.distance_m,
+                    commanded_m: s.commanded_distance_m,
                 });
             }
         }
@@ -159,6 +175,8 @@ pub fn run_first_episodes(
                 *f = Some(FirstEpisode {
                     steps: step,
                     end: None,
+                    walked_m: walked(run.env(i)),
+                    commanded_m: commanded[i],
                 });
             } else {
                 observe(i, run.env(i), step);
@@ -170,10 +188,13 @@ pub fn run_first_episodes(
     }
     Ok(first
         .into_iter()
-        .map(|f| {
-            f.unwrap_or(FirstEpisode {
+        .enumerate()
+        .map(|(i, f)| {
+            f.unwrap_or_else(|| FirstEpisode {
                 steps: max_steps,
                 end: Some(EpisodeEnd::TimeOut),
+                walked_m: walked(run.env(i)),
+                commanded_m: commanded[i],
             })
         })
         .collect())

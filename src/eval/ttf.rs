@@ -65,6 +65,9 @@ pub struct TtfCell {
     pub payload_falls: usize,
     pub mean_steps: f64,
     pub episode_steps: usize,
+    /// Distance walked from the spawn point / commanded distance, summed over the
+    /// robots (a robot standing still never falls: this tells whether they walked).
+    pub walked_ratio: f64,
 }
 
 /// All cells, in table order.
@@ -121,6 +124,8 @@ pub fn ttf_cell(
         payload_falls: all.iter().filter(|e| e.end.is_none()).count(),
         mean_steps: mean(&lengths.iter().map(|&s| s as f64).collect::<Vec<_>>()),
         episode_steps,
+        walked_ratio: all.iter().map(|e| e.walked_m).sum::<f64>()
+            / all.iter().map(|e| e.commanded_m).sum::<f64>(),
     }
 }
 
@@ -257,6 +262,7 @@ impl TtfReport {
                 "payload_falls",
                 "mean_steps",
                 "episode_steps",
+                "walked_ratio",
                 "ttf_per_seed",
             ]
             .map(String::from),
@@ -274,6 +280,7 @@ impl TtfReport {
                 c.payload_falls.to_string(),
                 format!("{:.1}", c.mean_steps),
                 c.episode_steps.to_string(),
+                format!("{:.3}", c.walked_ratio),
                 per_seed.join(";"),
             ]));
         }
