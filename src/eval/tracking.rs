@@ -107,14 +107,26 @@ pub fn evaluate_tracking(
     }
     let lengths: Vec<(usize, bool)> = first
         .iter()
-        .map(|e| e.map_or((max_steps, false), |e| (e.steps, e.end != EpisodeEnd::TimeOut)))
+        .map(|e| {
+            e.map_or((max_steps, false), |e| {
+                (e.steps, e.end != EpisodeEnd::TimeOut)
+            })
+        })
         .collect();
     let ended = |end: EpisodeEnd| first.iter().flatten().filter(|e| e.end == end).count();
     let n = episodes.max(1) as f64;
     Ok(TrackingReport {
         episodes,
-        lin_vel_score: if samples > 0 { lin_sum / samples as f64 } else { 0.0 },
-        yaw_rate_score: if samples > 0 { yaw_sum / samples as f64 } else { 0.0 },
+        lin_vel_score: if samples > 0 {
+            lin_sum / samples as f64
+        } else {
+            0.0
+        },
+        yaw_rate_score: if samples > 0 {
+            yaw_sum / samples as f64
+        } else {
+            0.0
+        },
         fall_rate: lengths.iter().filter(|(_, fell)| *fell).count() as f64 / n,
         mean_episode_length_steps: lengths.iter().map(|(l, _)| *l as f64).sum::<f64>() / n,
         max_episode_length_steps: max_steps,
