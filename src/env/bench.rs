@@ -51,10 +51,23 @@ pub fn bench_config(base: &EnvConfig) -> EnvConfig {
 }
 
 /// Runs both loops for about `seconds` in total with `envs` robots on `threads` threads.
-pub fn bench_env(cfg: &EnvConfig, envs: usize, threads: usize, seconds: f64, seed: u64) -> Result<EnvBenchReport> {
+pub fn bench_env(
+    cfg: &EnvConfig,
+    envs: usize,
+    threads: usize,
+    seconds: f64,
+    seed: u64,
+) -> Result<EnvBenchReport> {
     let cfg = Arc::new(bench_config(cfg));
     let scene = build_scene(&cfg, seed)?;
-    let mut vec = VecEnv::new(cfg.clone(), &scene.model, scene.terrain.clone(), envs, threads, seed)?;
+    let mut vec = VecEnv::new(
+        cfg.clone(),
+        &scene.model,
+        scene.terrain.clone(),
+        envs,
+        threads,
+        seed,
+    )?;
     // Raw robots start from the envs' own (randomised, spawned) states.
     let mut raw: Vec<RawRobot> = vec
         .envs()
@@ -66,7 +79,13 @@ pub fn bench_env(cfg: &EnvConfig, envs: usize, threads: usize, seconds: f64, see
             data.qpos_mut().copy_from_slice(src.data.qpos());
             data.qvel_mut().copy_from_slice(src.data.qvel());
             data.forward(&model)?;
-            let robot = Robot { model, data, layout: src.layout.clone(), control: src.control.clone(), default_q_rad: src.default_q_rad };
+            let robot = Robot {
+                model,
+                data,
+                layout: src.layout.clone(),
+                control: src.control.clone(),
+                default_q_rad: src.default_q_rad,
+            };
             let limits = std::array::from_fn(|i| robot.control.torque_limit_nm(i));
             Ok(RawRobot { robot, limits })
         })
@@ -77,7 +96,13 @@ pub fn bench_env(cfg: &EnvConfig, envs: usize, threads: usize, seconds: f64, see
         .map_err(|e| SimError::Invalid(e.to_string()))?;
     // A fixed table of random actions, U[-0.5, 0.5], cycled by both loops.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let table: Vec<Vec<f32>> = (0..64).map(|_| (0..envs * ACT_DIM).map(|_| rng.gen_range(-0.5..0.5)).collect()).collect();
+    let table: Vec<Vec<f32>> = (0..64)
+        .map(|_| {
+            (0..envs * ACT_DIM)
+                .map(|_| rng.gen_range(-0.5..0.5))
+                .collect()
+        })
+        .collect();
     let decimation = cfg.control.decimation;
     let round_steps = 50;
     let (mut t_env, mut t_raw, mut steps) = (Duration::ZERO, Duration::ZERO, 0usize);
@@ -91,23 +116,31 @@ pub fn bench_env(cfg: &EnvConfig, envs: usize, threads: usize, seconds: f64, see
             k += 1;
         }
         t_env += t.elapsed();
+        // Both loops start each round from the same robot states (not timed), so
+        // the raw robots see the envs' resets instead of lying where they fell.
+        for (r, e) in raw.iter_mut().zip(vec.envs()) {
+            r.robot.data.qpos_mut().copy_from_slice(e.robot().data.qpos());
+            r.robot.data.qvel_mut().copy_from_slice(e.robot().data.qvel());
+        }
         let t = Instant::now();
         for j in 0..round_steps {
             let actions = &table[(k - round_steps + j) % table.len()];
             pool.install(|| {
-                raw.par_iter_mut().zip(actions.par_chunks(ACT_DIM)).for_each(|(r, a)| {
-                    let target = r.robot.control.joint_targets(&r.robot.default_q_rad, a);
-                    let pd = RawPd {
-                        qpos_adr: &r.robot.layout.qpos_adr,
-                        dof_adr: &r.robot.layout.dof_adr,
-                        actuator: &r.robot.layout.actuator_ids,
-                        target_rad: &target,
-                        kp: r.robot.control.kp_nm_per_rad,
-                        kd: r.robot.control.kd_nm_s_per_rad,
-                        limit_nm: &r.limits,
-                    };
-                    raw_pd_steps(&r.robot.model, &mut r.robot.data, decimation, &pd);
-                })
+                raw.par_iter_mut()
+                    .zip(actions.par_chunks(ACT_DIM))
+                    .for_each(|(r, a)| {
+                        let target = r.robot.control.joint_targets(&r.robot.default_q_rad, a);
+                        let pd = RawPd {
+                            qpos_adr: &r.robot.layout.qpos_adr,
+                            dof_adr: &r.robot.layout.dof_adr,
+                            actuator: &r.robot.layout.actuator_ids,
+                            target_rad: &target,
+                            kp: r.robot.control.kp_nm_per_rad,
+                            kd: r.robot.control.kd_nm_s_per_rad,
+                            limit_nm: &r.limits,
+                        };
+                        raw_pd_steps(&r.robot.model, &mut r.robot.data, decimation, &pd);
+                    })
             });
         }
         t_raw += t.elapsed();

@@ -174,19 +174,28 @@ impl VecEnv {
             }
             b.pushes += res.pushed as u64;
             if let Some(s) = env.take_summary() {
-                // Auto-reset (rare: about one env in a thousand per step), after
-                // the curriculum has seen the episode.
+                // The curriculum sees the episode before the env resets onto its next tile.
                 if let Some(c) = &mut self.curriculum {
                     c.update(i, s.distance_m, s.commanded_distance_m);
                     env.set_terrain_cell(c.level(i), c.terrain_type(i));
                 }
-                let obs = &mut b.obs[i * OBS_DIM..(i + 1) * OBS_DIM];
-                if env.reset(obs).is_err() {
-                    env.instabilities += 1;
-                }
                 self.episodes.push(s);
             }
         }
+        // Auto-reset, in parallel: each env draws from its own RNG, so the order
+        // (and the thread count) does not change the result.
+        let obs = &mut b.obs;
+        self.pool.install(|| {
+            self.envs
+                .par_iter_mut()
+                .zip(obs.par_chunks_mut(OBS_DIM))
+                .filter(|(env, _)| env.last_step.done)
+                .for_each(|(env, o)| {
+                    if env.reset(o).is_err() {
+                        env.instabilities += 1;
+                    }
+                });
+        });
         &self.batch
     }
 
