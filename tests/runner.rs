@@ -1,7 +1,7 @@
 //! Issue 4 (runner side): configs, checkpoints, resume, tracking evaluation.
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -36,9 +36,20 @@ fn no_stop() -> Arc<AtomicBool> {
     Arc::new(AtomicBool::new(false))
 }
 
+/// A 2-iteration run in a temp dir: (the dir guard, the run directory).
+fn trained_run(critic: CriticKind) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    train(tiny_config(critic), &run, false, no_stop(), &mut ()).unwrap();
+    (dir, run)
+}
+
 fn metric_rows(dir: &Path) -> Vec<Vec<String>> {
     let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
-    text.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect()
+    text.lines()
+        .skip(1)
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect()
 }
 
 #[test]
@@ -48,7 +59,9 @@ fn training_writes_metrics_and_checkpoints_and_resume_continues() {
         let run = dir.path().join("run");
         let s = train(tiny_config(critic), &run, false, no_stop(), &mut ()).unwrap();
         assert_eq!(s.iterations_done, 2);
-        assert!(run.join(LATEST).exists() && run.join("checkpoints/model_000002.safetensors").exists());
+        assert!(
+            run.join(LATEST).exists() && run.join("checkpoints/model_000002.safetensors").exists()
+        );
         let rows = metric_rows(&run);
         assert_eq!(rows.len(), 2);
         assert_eq!(rows[1][0], "2");
@@ -69,29 +82,33 @@ fn training_writes_metrics_and_checkpoints_and_resume_continues() {
         assert_eq!(rows[2][2], (3 * 8 * 8).to_string());
         let after = load_policy(&run.join(LATEST)).unwrap();
         assert_eq!(after.progress.iteration, 3);
-        assert!(after.progress.rng_word_pos > before.progress.rng_word_pos, "action RNG continued");
+        assert!(
+            after.progress.rng_word_pos > before.progress.rng_word_pos,
+            "action RNG continued"
+        );
         assert!(lr_before > 0.0 && after.learner.learning_rate() > 0.0);
     }
 }
 
 #[test]
 fn a_saved_policy_loads_with_identical_outputs() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    train(tiny_config(CriticKind::Iqn), &run, false, no_stop(), &mut ()).unwrap();
+    let (_dir, run) = trained_run(CriticKind::Iqn);
     let a = load_policy(&run.join(LATEST)).unwrap();
     let b = load_policy(&run.join("checkpoints/model_000002.safetensors")).unwrap();
-    let obs: Vec<f32> = (0..4 * OBS_DIM).map(|i| ((i * 37) % 17) as f32 / 17.0 - 0.5).collect();
+    let obs: Vec<f32> = (0..4 * OBS_DIM)
+        .map(|i| ((i * 37) % 17) as f32 / 17.0 - 0.5)
+        .collect();
     assert_eq!(a.learner.act_mean(&obs), b.learner.act_mean(&obs));
-    assert_eq!(a.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9]), b.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9]));
+    assert_eq!(
+        a.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9]),
+        b.learner.value_quantiles(&obs, &[0.1, 0.5, 0.9])
+    );
     assert_eq!(a.config, b.config);
 }
 
 #[test]
 fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    train(tiny_config(CriticKind::Iqn), &run, false, no_stop(), &mut ()).unwrap();
+    let (dir, run) = trained_run(CriticKind::Iqn);
     let good = run.join(LATEST);
     let (tensors, meta) = load_checkpoint(&good).unwrap();
 
@@ -100,10 +117,16 @@ fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
         edit(&mut m);
         let p = dir.path().join(name);
         save_checkpoint(&p, &tensors, &m).unwrap();
-        load_policy(&p).err().map(|e| format!("{e:#}")).expect("refused")
+        load_policy(&p)
+            .err()
+            .map(|e| format!("{e:#}"))
+            .expect("refused")
     };
     let e = rewrite("layout.safetensors", &|m| {
-        m.insert("obs_layout".into(), "base_lin_vel_body:3,height_scan:187".into());
+        m.insert(
+            "obs_layout".into(),
+            "base_lin_vel_body:3,height_scan:187".into(),
+        );
     });
     assert!(e.contains("observation layout mismatch"), "{e}");
     let e = rewrite("version.safetensors", &|m| {
@@ -112,7 +135,10 @@ fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
     assert!(e.contains("format 99"), "{e}");
     // the config says 64-wide networks but the tensors are 32-wide
     let e = rewrite("shapes.safetensors", &|m| {
-        let cfg = m["config_toml"].replace("actor_hidden = [\n    32,\n    32,\n]", "actor_hidden = [\n    64,\n    32,\n]");
+        let cfg = m["config_toml"].replace(
+            "actor_hidden = [\n    32,\n    32,\n]",
+            "actor_hidden = [\n    64,\n    32,\n]",
+        );
         assert_ne!(cfg, m["config_toml"], "test edits the config");
         m.insert("config_toml".into(), cfg);
     });
@@ -123,7 +149,12 @@ fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
     let e = format!("{:#}", load_policy(&truncated).err().unwrap());
     assert!(e.contains("truncated.safetensors"), "{e}");
-    let e = format!("{:#}", load_policy(&dir.path().join("missing.safetensors")).err().unwrap());
+    let e = format!(
+        "{:#}",
+        load_policy(&dir.path().join("missing.safetensors"))
+            .err()
+            .unwrap()
+    );
     assert!(e.contains("missing.safetensors"), "{e}");
 }
 
@@ -156,9 +187,7 @@ fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
 
 #[test]
 fn tracking_evaluation_of_an_untrained_policy_gives_bounded_scores() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    train(tiny_config(CriticKind::Scalar), &run, false, no_stop(), &mut ()).unwrap();
+    let (_dir, run) = trained_run(CriticKind::Scalar);
     let p = load_policy(&run.join(LATEST)).unwrap();
     let env = tracking_env(&p.config.env);
     let r = evaluate_tracking(&p.learner, &env, 4, 2, 1, ActionMode::Mean).unwrap();

@@ -31,7 +31,9 @@ impl RunDir {
         self.root.join(LATEST)
     }
     pub fn checkpoint(&self, iteration: usize) -> PathBuf {
-        self.root.join("checkpoints").join(format!("model_{iteration:06}.safetensors"))
+        self.root
+            .join("checkpoints")
+            .join(format!("model_{iteration:06}.safetensors"))
     }
     pub fn metrics(&self) -> PathBuf {
         self.root.join("metrics.csv")
@@ -66,11 +68,15 @@ pub fn train(
     stop: Arc<AtomicBool>,
     observer: &mut dyn IterationObserver,
 ) -> Result<TrainSummary> {
-    let dir = RunDir { root: run_dir.to_path_buf() };
-    std::fs::create_dir_all(&dir.root).with_context(|| format!("creating run directory {}", dir.root.display()))?;
+    let dir = RunDir {
+        root: run_dir.to_path_buf(),
+    };
+    std::fs::create_dir_all(&dir.root)
+        .with_context(|| format!("creating run directory {}", dir.root.display()))?;
     let (cfg, mut learner, mut progress) = if resume {
         let latest = dir.latest();
-        let loaded = load_policy(&latest).with_context(|| format!("resuming from {}", latest.display()))?;
+        let loaded =
+            load_policy(&latest).with_context(|| format!("resuming from {}", latest.display()))?;
         let mut stored = loaded.config;
         stored.runner.iterations = cfg.runner.iterations;
         println!(
@@ -82,18 +88,32 @@ pub fn train(
         (stored, loaded.learner, loaded.progress)
     } else {
         let learner = Learner::new(OBS_DIM, ACT_DIM, &cfg.learner, cfg.runner.seed)?;
-        let progress = Progress { rng_seed: cfg.runner.seed ^ 0xA11_0C47, ..Default::default() };
+        let progress = Progress {
+            rng_seed: cfg.runner.seed ^ 0xA11_0C47,
+            ..Default::default()
+        };
         (cfg, learner, progress)
     };
     std::fs::write(dir.root.join("config.toml"), cfg.to_toml()).context("writing config.toml")?;
 
     let r = &cfg.runner;
-    let threads = if r.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { r.threads };
+    let threads = if r.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        r.threads
+    };
     // Envs restart fresh episodes on resume, seeded by the iteration so a resumed
     // run does not replay the first run's episodes.
     let env_seed = r.seed.wrapping_add(progress.iteration as u64 * 0x9E37_79B9);
     let scene = build_scene(&cfg.env, r.seed).context("building the scene")?;
-    let mut envs = VecEnv::new(Arc::new(cfg.env.clone()), &scene.model, scene.terrain.clone(), r.num_envs, threads, env_seed)?;
+    let mut envs = VecEnv::new(
+        Arc::new(cfg.env.clone()),
+        &scene.model,
+        scene.terrain.clone(),
+        r.num_envs,
+        threads,
+        env_seed,
+    )?;
     if cfg.env.episode.randomize_initial_length {
         envs.randomize_episode_progress();
     }
@@ -170,37 +190,29 @@ pub fn train(
         metrics.write(&row)?;
         observer.on_iteration(&row, &learner)?;
         bar.set_position(progress.iteration as u64);
-        bar.set_message(format!(
-            "{:.0} steps/s (collect {:.2}s, learn {:.2}s) | return {:.2} | len {:.0} | track {:.3} | level {:.2} | risk {}/{}",
+        let status = format!(
+            "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | risk {}/{} | lr {:.1e} | std {:.3} | value loss {:.4}",
+            progress.iteration,
+            progress.wall_s / 60.0,
             iteration_env_steps as f64 / (collect_s + learn_s),
             collect_s,
             learn_s,
             last_stats.mean_return,
             last_stats.mean_length_steps,
             last_stats.lin_tracking_score,
+            last_stats.falls,
+            last_stats.episodes,
             row.terrain_level,
             risk_fired.iter().sum::<u64>(),
             risk_exceeded.iter().sum::<u64>(),
-        ));
-        if progress.iteration % r.log_interval == 0 || progress.iteration == 1 {
-            log_line(&bar, format!(
-                "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | lr {:.1e} | std {:.3} | value loss {:.4}",
-                progress.iteration,
-                progress.wall_s / 60.0,
-                iteration_env_steps as f64 / (collect_s + learn_s),
-                collect_s,
-                learn_s,
-                last_stats.mean_return,
-                last_stats.mean_length_steps,
-                last_stats.lin_tracking_score,
-                last_stats.falls,
-                last_stats.episodes,
-                row.terrain_level,
-                update.learning_rate,
-                update.mean_std,
-                update.value_loss,
-            ));
+            update.learning_rate,
+            update.mean_std,
+            update.value_loss,
+        );
+        if progress.iteration.is_multiple_of(r.log_interval) || progress.iteration == 1 {
+            log_line(&bar, status.clone());
         }
+        bar.set_message(status);
         episodes.clear();
         if progress.iteration % r.save_interval == 0 || progress.iteration == r.iterations {
             last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
@@ -208,7 +220,13 @@ pub fn train(
     }
     if interrupted {
         last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
-        log_line(&bar, format!("interrupted: checkpoint written at iteration {}", progress.iteration));
+        log_line(
+            &bar,
+            format!(
+                "interrupted: checkpoint written at iteration {}",
+                progress.iteration
+            ),
+        );
     }
     bar.finish_and_clear();
     Ok(TrainSummary {
@@ -221,7 +239,12 @@ pub fn train(
 }
 
 /// Writes the numbered checkpoint and the rolling `latest` one.
-fn save_both(dir: &RunDir, learner: &Learner, cfg: &TrainConfig, progress: &Progress) -> Result<PathBuf> {
+fn save_both(
+    dir: &RunDir,
+    learner: &Learner,
+    cfg: &TrainConfig,
+    progress: &Progress,
+) -> Result<PathBuf> {
     let numbered = dir.checkpoint(progress.iteration);
     save_policy(&numbered, learner, cfg, progress)?;
     save_policy(&dir.latest(), learner, cfg, progress)?;
