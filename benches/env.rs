@@ -11,7 +11,10 @@ fn bench(_c: &mut Criterion) {
     let envs = 64;
     println!("env summary: {envs} envs, random actions; env and raw loops interleaved");
     for terrain in [TerrainKind::Flat, TerrainKind::Rough] {
-        let mut cfg = EnvConfig { robot_mjcf: concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml").into(), ..Default::default() };
+        let mut cfg = EnvConfig {
+            robot_mjcf: concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml").into(),
+            ..Default::default()
+        };
         cfg.terrain.kind = terrain;
         let one = bench_env(&cfg, envs, 1, 8.0, 1).expect("bench");
         let two = bench_env(&cfg, envs, 2, 8.0, 1).expect("bench");

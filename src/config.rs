@@ -56,7 +56,8 @@ pub struct TrainConfig {
 impl TrainConfig {
     /// Reads and validates a TOML file; errors name the file and the key.
     pub fn from_toml_file(path: &Path) -> Result<TrainConfig> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading config {}", path.display()))?;
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading config {}", path.display()))?;
         TrainConfig::from_toml_str(&text).with_context(|| format!("config {}", path.display()))
     }
 
@@ -72,13 +73,27 @@ impl TrainConfig {
 
     /// Refuses impossible values, naming the key.
     pub fn validate(&self) -> Result<()> {
-        self.env.validate().map_err(|e| anyhow::anyhow!("invalid [env] value: {e}"))?;
+        self.env
+            .validate()
+            .map_err(|e| anyhow::anyhow!("invalid [env] value: {e}"))?;
         self.learner.validate().context("invalid [learner] value")?;
         let r = &self.runner;
-        anyhow::ensure!(r.num_envs > 0, "invalid [runner] value: runner.num_envs must be at least 1");
-        anyhow::ensure!(r.steps_per_env > 0, "invalid [runner] value: runner.steps_per_env must be at least 1");
-        anyhow::ensure!(r.save_interval > 0, "invalid [runner] value: runner.save_interval must be at least 1");
-        anyhow::ensure!(r.log_interval > 0, "invalid [runner] value: runner.log_interval must be at least 1");
+        anyhow::ensure!(
+            r.num_envs > 0,
+            "invalid [runner] value: runner.num_envs must be at least 1"
+        );
+        anyhow::ensure!(
+            r.steps_per_env > 0,
+            "invalid [runner] value: runner.steps_per_env must be at least 1"
+        );
+        anyhow::ensure!(
+            r.save_interval > 0,
+            "invalid [runner] value: runner.save_interval must be at least 1"
+        );
+        anyhow::ensure!(
+            r.log_interval > 0,
+            "invalid [runner] value: runner.log_interval must be at least 1"
+        );
         let batch = r.num_envs * r.steps_per_env;
         anyhow::ensure!(
             batch >= self.learner.ppo.num_mini_batches,

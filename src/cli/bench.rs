@@ -50,12 +50,18 @@ pub fn run(args: &BenchArgs) -> Result<()> {
 
 fn env(a: &EnvBenchArgs) -> Result<()> {
     anyhow::ensure!(a.envs > 0, "--envs must be at least 1");
-    let mut cfg = EnvConfig { robot_mjcf: a.robot.clone(), ..Default::default() };
+    let mut cfg = EnvConfig {
+        robot_mjcf: a.robot.clone(),
+        ..Default::default()
+    };
     cfg.terrain.kind = match a.terrain {
         TerrainArg::Flat => TerrainKind::Flat,
         TerrainArg::Rough => TerrainKind::Rough,
     };
-    println!("{} envs, {:?} terrain, random actions U[-0.5, 0.5], {} s per run", a.envs, a.terrain, a.seconds);
+    println!(
+        "{} envs, {:?} terrain, random actions U[-0.5, 0.5], {} s per run",
+        a.envs, a.terrain, a.seconds
+    );
     println!("threads | env steps/s | raw physics (policy steps/s) | env/raw | speed-up vs first");
     let mut first = None;
     for &t in &a.threads {

@@ -118,7 +118,9 @@ pub fn run(args: &TrainArgs) -> Result<()> {
                 eprintln!("second Ctrl-C: exiting without a checkpoint");
                 std::process::exit(130);
             }
-            eprintln!("Ctrl-C: finishing this iteration and writing a checkpoint (Ctrl-C again to abort)");
+            eprintln!(
+                "Ctrl-C: finishing this iteration and writing a checkpoint (Ctrl-C again to abort)"
+            );
         })
         .context("installing the Ctrl-C handler")?;
     }
@@ -131,26 +133,46 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         cfg.runner.seed,
         run_dir.display()
     );
-    let target = RerunTarget::from_flags(args.rerun_save.as_deref(), args.rerun_spawn, args.rerun_connect.as_deref());
+    let target = RerunTarget::from_flags(
+        args.rerun_save.as_deref(),
+        args.rerun_spawn,
+        args.rerun_connect.as_deref(),
+    );
     let summary = match target {
         None => train(cfg, &run_dir, resume, stop, &mut ())?,
         Some(target) => {
             // A resumed run evaluates in its own stored env.
             let stored = run_dir.join("config.toml");
-            let run_cfg = if resume && stored.exists() { TrainConfig::from_toml_file(&stored)? } else { cfg.clone() };
-            let opts = TrainRecordingOptions { eval_every: args.rerun_eval_every, eval_steps: args.rerun_eval_steps };
-            let mut recorder = TrainRecorder::open(&target, &run_dir.display().to_string(), &run_cfg, opts)?;
+            let run_cfg = if resume && stored.exists() {
+                TrainConfig::from_toml_file(&stored)?
+            } else {
+                cfg.clone()
+            };
+            let opts = TrainRecordingOptions {
+                eval_every: args.rerun_eval_every,
+                eval_steps: args.rerun_eval_steps,
+            };
+            let mut recorder =
+                TrainRecorder::open(&target, &run_dir.display().to_string(), &run_cfg, opts)?;
             let summary = train(cfg, &run_dir, resume, stop, &mut recorder)?;
             recorder.finish()?;
             if let RerunTarget::Save(path) = &target {
-                println!("rerun recording: {} (open with `rerun {}`)", path.display(), path.display());
+                println!(
+                    "rerun recording: {} (open with `rerun {}`)",
+                    path.display(),
+                    path.display()
+                );
             }
             summary
         }
     };
     println!(
         "{} at iteration {}; checkpoint {}",
-        if summary.interrupted { "stopped" } else { "finished" },
+        if summary.interrupted {
+            "stopped"
+        } else {
+            "finished"
+        },
         summary.iterations_done,
         summary.last_checkpoint.display()
     );
@@ -163,5 +185,8 @@ fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {
         CriticKind::Iqn => "iqn",
         CriticKind::Scalar => "scalar",
     };
-    PathBuf::from(&cfg.runner.runs_dir).join(format!("{name}-{critic}-eta{}-s{}", cfg.learner.cvar_eta, cfg.runner.seed))
+    PathBuf::from(&cfg.runner.runs_dir).join(format!(
+        "{name}-{critic}-eta{}-s{}",
+        cfg.learner.cvar_eta, cfg.runner.seed
+    ))
 }

@@ -119,8 +119,14 @@ pub fn bench_env(
         // Both loops start each round from the same robot states (not timed), so
         // the raw robots see the envs' resets instead of lying where they fell.
         for (r, e) in raw.iter_mut().zip(vec.envs()) {
-            r.robot.data.qpos_mut().copy_from_slice(e.robot().data.qpos());
-            r.robot.data.qvel_mut().copy_from_slice(e.robot().data.qvel());
+            r.robot
+                .data
+                .qpos_mut()
+                .copy_from_slice(e.robot().data.qpos());
+            r.robot
+                .data
+                .qvel_mut()
+                .copy_from_slice(e.robot().data.qvel());
         }
         let t = Instant::now();
         for j in 0..round_steps {

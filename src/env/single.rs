@@ -415,7 +415,8 @@ impl Env {
                 every_steps,
                 hold_steps,
             } => {
-                let start = self.step_in_episode > 0 && self.step_in_episode.is_multiple_of(every_steps);
+                let start =
+                    self.step_in_episode > 0 && self.step_in_episode.is_multiple_of(every_steps);
                 if start {
                     let dir = self.rng.gen_range(0..4);
                     let f = [
@@ -472,7 +473,10 @@ impl Env {
     /// Air time bookkeeping; returns each foot's air time at touchdown (0 if none).
     fn update_feet_air_time(&mut self, dt: f64) -> [f64; 4] {
         let mut touchdown = [0.0; 4];
-        let feet = self.feet_air_time_s.iter_mut().zip(&self.state.foot_contact);
+        let feet = self
+            .feet_air_time_s
+            .iter_mut()
+            .zip(&self.state.foot_contact);
         for (leg, (air_s, &contact)) in feet.enumerate() {
             *air_s += dt;
             if contact {

@@ -27,7 +27,10 @@ pub struct EpisodeStats {
 impl EpisodeStats {
     /// `lin_weight_dt` = lin_vel_tracking weight x policy dt (to undo the scaling).
     pub fn from_episodes(eps: &[EpisodeSummary], lin_weight_dt: f64) -> EpisodeStats {
-        let mut s = EpisodeStats { episodes: eps.len(), ..Default::default() };
+        let mut s = EpisodeStats {
+            episodes: eps.len(),
+            ..Default::default()
+        };
         if eps.is_empty() {
             return s;
         }
@@ -108,7 +111,10 @@ fn header() -> String {
 impl MetricsCsv {
     /// Opens `path` for appending (a resumed run keeps its history), writing the header if new.
     pub fn open(path: &Path) -> Result<MetricsCsv> {
-        let is_new = !path.exists() || std::fs::metadata(path).map(|m| m.len() == 0).unwrap_or(true);
+        let is_new = !path.exists()
+            || std::fs::metadata(path)
+                .map(|m| m.len() == 0)
+                .unwrap_or(true);
         let f = OpenOptions::new()
             .create(true)
             .append(true)
@@ -125,7 +131,11 @@ impl MetricsCsv {
         let e = r.episodes;
         let u = r.update;
         let elapsed = r.collect_s + r.learn_s;
-        let steps_per_s = if elapsed > 0.0 { r.iteration_env_steps as f64 / elapsed } else { 0.0 };
+        let steps_per_s = if elapsed > 0.0 {
+            r.iteration_env_steps as f64 / elapsed
+        } else {
+            0.0
+        };
         let mut row = format!(
             "{},{:.3},{},{:.4},{:.4},{:.1},{},{:.5},{:.2},{:.5},{:.4},{:.3},{:.6},{:.6},{:.5},{:.6},{:.3e},{:.5},{:.4},{:.4},{}",
             r.iteration,

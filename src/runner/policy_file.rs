@@ -27,7 +27,12 @@ pub struct Progress {
 }
 
 /// Writes `learner` + `progress` + `cfg` to `path` (temp file + rename).
-pub fn save_policy(path: &Path, learner: &Learner, cfg: &TrainConfig, progress: &Progress) -> Result<()> {
+pub fn save_policy(
+    path: &Path,
+    learner: &Learner,
+    cfg: &TrainConfig,
+    progress: &Progress,
+) -> Result<()> {
     let mut meta = HashMap::new();
     meta.insert("format".into(), "rall-checkpoint".into());
     meta.insert("format_version".into(), FORMAT_VERSION.into());
@@ -37,7 +42,10 @@ pub fn save_policy(path: &Path, learner: &Learner, cfg: &TrainConfig, progress: 
     meta.insert("obs_dim".into(), OBS_DIM.to_string());
     meta.insert("act_dim".into(), ACT_DIM.to_string());
     meta.insert("iteration".into(), progress.iteration.to_string());
-    meta.insert("total_env_steps".into(), progress.total_env_steps.to_string());
+    meta.insert(
+        "total_env_steps".into(),
+        progress.total_env_steps.to_string(),
+    );
     meta.insert("wall_s".into(), format!("{:.3}", progress.wall_s));
     meta.insert("rng_seed".into(), progress.rng_seed.to_string());
     meta.insert("rng_word_pos".into(), progress.rng_word_pos.to_string());
@@ -55,15 +63,26 @@ pub struct LoadedPolicy {
 }
 
 fn meta_value<'a>(meta: &'a HashMap<String, String>, key: &str, path: &Path) -> Result<&'a str> {
-    meta.get(key)
-        .map(String::as_str)
-        .with_context(|| format!("{} is not a rall checkpoint: metadata `{key}` is missing", path.display()))
+    meta.get(key).map(String::as_str).with_context(|| {
+        format!(
+            "{} is not a rall checkpoint: metadata `{key}` is missing",
+            path.display()
+        )
+    })
 }
 
-fn meta_parse<T: std::str::FromStr>(meta: &HashMap<String, String>, key: &str, path: &Path) -> Result<T> {
+fn meta_parse<T: std::str::FromStr>(
+    meta: &HashMap<String, String>,
+    key: &str,
+    path: &Path,
+) -> Result<T> {
     let v = meta_value(meta, key, path)?;
-    v.parse()
-        .map_err(|_| anyhow::anyhow!("{}: metadata `{key}` = {v:?} is not a valid number", path.display()))
+    v.parse().map_err(|_| {
+        anyhow::anyhow!(
+            "{}: metadata `{key}` = {v:?} is not a valid number",
+            path.display()
+        )
+    })
 }
 
 /// Loads a checkpoint, refusing one whose format, observation layout or
@@ -72,11 +91,17 @@ pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
     let (tensors, meta) = load_checkpoint(path)?;
     let format = meta_value(&meta, "format", path)?;
     if format != "rall-checkpoint" {
-        bail!("{} is not a rall checkpoint (format {format:?})", path.display());
+        bail!(
+            "{} is not a rall checkpoint (format {format:?})",
+            path.display()
+        );
     }
     let version = meta_value(&meta, "format_version", path)?;
     if version != FORMAT_VERSION {
-        bail!("{}: checkpoint format {version} but this rall reads format {FORMAT_VERSION}", path.display());
+        bail!(
+            "{}: checkpoint format {version} but this rall reads format {FORMAT_VERSION}",
+            path.display()
+        );
     }
     let layout = meta_value(&meta, "obs_layout", path)?;
     if layout != layout_string() {
@@ -86,7 +111,10 @@ pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
             layout_string()
         );
     }
-    let (obs_dim, act_dim): (usize, usize) = (meta_parse(&meta, "obs_dim", path)?, meta_parse(&meta, "act_dim", path)?);
+    let (obs_dim, act_dim): (usize, usize) = (
+        meta_parse(&meta, "obs_dim", path)?,
+        meta_parse(&meta, "act_dim", path)?,
+    );
     if obs_dim != OBS_DIM || act_dim != ACT_DIM {
         bail!(
             "{}: checkpoint has obs {obs_dim} / actions {act_dim}, this rall needs {OBS_DIM} / {ACT_DIM}",
@@ -103,8 +131,15 @@ pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
         rng_word_pos: meta_parse(&meta, "rng_word_pos", path)?,
     };
     let mut learner = Learner::new(OBS_DIM, ACT_DIM, &config.learner, config.runner.seed)?;
-    learner
-        .load_state(&tensors)
-        .with_context(|| format!("{} does not match the network in its own config", path.display()))?;
-    Ok(LoadedPolicy { learner, config, progress })
+    learner.load_state(&tensors).with_context(|| {
+        format!(
+            "{} does not match the network in its own config",
+            path.display()
+        )
+    })?;
+    Ok(LoadedPolicy {
+        learner,
+        config,
+        progress,
+    })
 }
