@@ -479,3 +479,47 @@ fn cli_play_needs_exactly_one_destination() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot be used with"));
 }
+
+#[test]
+fn a_named_scenario_plays_with_its_payload_and_ground() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("scenario.rrd");
+    let cfg = small_cfg(CriticKind::Iqn);
+    let opts = PlayOptions {
+        episodes: 1,
+        max_steps: Some(30),
+        scenario: Some("moving_arm+rough+push".into()),
+        ..PlayOptions::default()
+    };
+    let (report, s) = record_play(&cfg, &opts, &path);
+    let frames = report.episodes[0].steps as u64 + 1;
+    // the arm's links are bodies of the scene: one transform per frame each
+    for link in ["z1_link02", "z1_link06"] {
+        let e = s.entity(&format!("world/robot/{link}")).unwrap_or_else(|| {
+            panic!(
+                "no entity for {link}: {:?}",
+                s.entities.keys().collect::<Vec<_>>()
+            )
+        });
+        assert_eq!(e.temporal_rows, frames, "{link}");
+    }
+    // the scenario's heightfield is drawn as terrain chunks, not the flat quad
+    assert!(s
+        .entities
+        .keys()
+        .any(|k| k.starts_with("/world/terrain/chunk_")));
+    assert!(s.entity("world/ground").is_none());
+    let e = viz::play(
+        &learner(&cfg),
+        &cfg.env,
+        &PlayOptions {
+            scenario: Some("lava".into()),
+            ..PlayOptions::default()
+        },
+        None,
+    )
+    .err()
+    .expect("unknown scenario refused");
+    assert!(format!("{e:#}").contains("lava"), "{e:#}");
+    verify_with_rerun_cli(&path);
+}

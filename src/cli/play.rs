@@ -22,6 +22,11 @@ pub struct PlayArgs {
     /// default: the checkpoint's own env (noise, PD and pushes as in training).
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// Play an evaluation scenario by name instead of the training scene: a load
+    /// (ball, frozen_arm, moving_arm), a ground (flat, rough, platform[=H], race) and
+    /// push, joined by `+`, e.g. `moving_arm+rough+push`.
+    #[arg(long, value_name = "NAME")]
+    pub scenario: Option<String>,
     #[arg(long, default_value_t = 1)]
     pub episodes: usize,
     /// Seed of the env (commands, randomisation, noise, pushes).
@@ -102,6 +107,7 @@ pub fn run(args: &PlayArgs) -> Result<()> {
         scene_seed: loaded.config.runner.seed,
         max_steps: args.steps_per_episode,
         terrain_level: args.terrain_level,
+        scenario: args.scenario.clone(),
         ..PlayOptions::default()
     };
     let (report, rec) = viz::play(&loaded.learner, &env_cfg, &opts, Some(rec))?;

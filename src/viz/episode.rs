@@ -93,6 +93,44 @@ impl Columns {
     }
 }
 
+/// A heightfield the logger can draw: training terrain or a scenario's ground.
+pub trait HeightGrid: Send + Sync {
+    /// Samples along (x, y).
+    fn grid_shape(&self) -> (usize, usize);
+    /// World position of sample (0, 0) (m).
+    fn grid_origin_m(&self) -> [f64; 2];
+    /// Spacing between samples (m).
+    fn horizontal_scale_m(&self) -> f64;
+    /// Heights (m), row-major with rows along y.
+    fn heights_m(&self) -> &[f32];
+    /// (lowest, highest) height (m).
+    fn height_range_m(&self) -> (f64, f64);
+}
+
+macro_rules! impl_height_grid {
+    ($t:ty) => {
+        impl HeightGrid for $t {
+            fn grid_shape(&self) -> (usize, usize) {
+                <$t>::grid_shape(self)
+            }
+            fn grid_origin_m(&self) -> [f64; 2] {
+                <$t>::grid_origin_m(self)
+            }
+            fn horizontal_scale_m(&self) -> f64 {
+                <$t>::horizontal_scale_m(self)
+            }
+            fn heights_m(&self) -> &[f32] {
+                <$t>::heights_m(self)
+            }
+            fn height_range_m(&self) -> (f64, f64) {
+                <$t>::height_range_m(self)
+            }
+        }
+    };
+}
+impl_height_grid!(Terrain);
+impl_height_grid!(crate::eval::ground::Ground);
+
 /// Logs a robot (and its ground) to a recording; see the module docs for the paths.
 pub struct EpisodeLogger {
     rec: RecordingStream,
@@ -101,7 +139,7 @@ pub struct EpisodeLogger {
     /// The policy of the current episode (the worker's critic).
     policy: Option<Arc<ActorCritic>>,
     worker: Worker,
-    terrain: Option<Arc<Terrain>>,
+    terrain: Option<Arc<dyn HeightGrid>>,
     logged_chunks: HashSet<(usize, usize)>,
     extra_timeline: Option<(&'static str, i64)>,
     cols: Columns,
@@ -150,7 +188,7 @@ impl EpisodeLogger {
     pub fn new(
         rec: RecordingStream,
         robot: &Robot,
-        terrain: Option<Arc<Terrain>>,
+        terrain: Option<Arc<dyn HeightGrid>>,
         probe: ValueProbe,
     ) -> Result<EpisodeLogger> {
         rec.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;

@@ -5,10 +5,11 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 
-use super::episode::EpisodeLogger;
+use super::episode::{EpisodeLogger, HeightGrid};
 use super::value::{ValueProbe, DEFAULT_NUM_BARS};
 use crate::env::terrain::Terrain;
 use crate::env::{build_scene, Env, EnvConfig, EpisodeEnd, Scene, OBS_DIM};
+use crate::eval::{build_named_scenario, ScenarioHook};
 use crate::learn::Learner;
 
 /// What to run.
@@ -27,6 +28,9 @@ pub struct PlayOptions {
     pub num_bars: usize,
     /// Steps buffered before the recording gets them.
     pub flush_steps: usize,
+    /// An evaluation scenario by name (`rall eval`'s names, e.g. `ball+rough+push`)
+    /// instead of the env config's own scene.
+    pub scenario: Option<String>,
 }
 
 impl Default for PlayOptions {
@@ -39,6 +43,7 @@ impl Default for PlayOptions {
             terrain_level: 0,
             num_bars: DEFAULT_NUM_BARS,
             flush_steps: super::episode::DEFAULT_FLUSH_STEPS,
+            scenario: None,
         }
     }
 }
@@ -62,13 +67,22 @@ pub struct PlayReport {
     pub sim_time_s: f64,
 }
 
-/// One env for the viewer: the scene of `cfg` and an [`Env`] on it.
+/// One env for the viewer: the scene of `cfg` (or of a named evaluation
+/// scenario) and an [`Env`] on it.
 pub struct ViewerEnv {
     pub env: Env,
-    /// The heightfield (rough ground), for the logger.
+    /// The training terrain (rough ground), for the logger and the curriculum cells.
     pub terrain: Option<Arc<Terrain>>,
-    scene: Scene,
-    cfg: Arc<EnvConfig>,
+    /// What the logger draws as ground: the terrain or the scenario's heightfield.
+    pub ground: Option<Arc<dyn HeightGrid>>,
+    /// The scenario's per-step logic (moving arm, payload), when playing one.
+    pub hook: Option<ScenarioHook>,
+    source: Source,
+}
+
+enum Source {
+    Scene { scene: Scene, cfg: Arc<EnvConfig> },
+    Scenario(Box<crate::eval::ScenarioSetup>),
 }
 
 impl ViewerEnv {
@@ -80,23 +94,47 @@ impl ViewerEnv {
             .context("creating the env")?;
         Ok(ViewerEnv {
             env,
+            ground: terrain.clone().map(|t| t as Arc<dyn HeightGrid>),
             terrain,
-            scene,
-            cfg,
+            hook: None,
+            source: Source::Scene { scene, cfg },
+        })
+    }
+
+    /// The evaluation scenario `name` (e.g. `moving_arm+rough+push`, see
+    /// `rall eval --help`) built on `cfg` (the checkpoint's noise, PD, rewards).
+    pub fn scenario(
+        name: &str,
+        cfg: &EnvConfig,
+        scene_seed: u64,
+        env_seed: u64,
+    ) -> Result<ViewerEnv> {
+        let setup = build_named_scenario(name, cfg, scene_seed)
+            .with_context(|| format!("building scenario {name:?}"))?;
+        let (env, hook) = setup.single_env(env_seed)?;
+        Ok(ViewerEnv {
+            env,
+            terrain: None,
+            ground: setup.ground.clone().map(|g| g as Arc<dyn HeightGrid>),
+            hook: Some(hook),
+            source: Source::Scenario(Box::new(setup)),
         })
     }
 
     /// Replaces the env by a fresh one seeded `env_seed` (same draws as the first
     /// time with that seed: evaluation episodes stay comparable).
     pub fn reseed(&mut self, env_seed: u64) -> Result<()> {
-        self.env = Env::new(
-            self.cfg.clone(),
-            &self.scene.model,
-            self.terrain.clone(),
-            env_seed,
-            0,
-        )
-        .context("creating the env")?;
+        match &self.source {
+            Source::Scene { scene, cfg } => {
+                self.env = Env::new(cfg.clone(), &scene.model, self.terrain.clone(), env_seed, 0)
+                    .context("creating the env")?;
+            }
+            Source::Scenario(setup) => {
+                let (env, hook) = setup.single_env(env_seed)?;
+                self.env = env;
+                self.hook = Some(hook);
+            }
+        }
         Ok(())
     }
 }
@@ -106,6 +144,7 @@ impl ViewerEnv {
 pub fn run_episode(
     learner: &Learner,
     env: &mut Env,
+    mut hook: Option<&mut ScenarioHook>,
     mut logger: Option<&mut EpisodeLogger>,
     max_steps: Option<usize>,
     label: &str,
@@ -113,6 +152,9 @@ pub fn run_episode(
     let mut obs = vec![0.0f32; OBS_DIM];
     let mut final_obs = vec![0.0f32; OBS_DIM];
     env.reset(&mut obs).context("resetting the env")?;
+    if let Some(h) = hook.as_deref_mut() {
+        h.on_reset(env);
+    }
     let dt = env.config().control.policy_dt_s();
     if let Some(l) = logger.as_deref_mut() {
         l.begin_episode(learner, env, label, &obs)?;
@@ -127,6 +169,9 @@ pub fn run_episode(
     };
     while ep.steps < limit {
         let action = learner.act_mean(&obs);
+        if let Some(h) = hook.as_deref_mut() {
+            h.before_step(env);
+        }
         let r = env.step(&action, &mut obs, &mut final_obs);
         ep.steps += 1;
         ep.total_reward += r.reward;
@@ -160,7 +205,10 @@ pub fn play(
     opts: &PlayOptions,
     rec: Option<rerun::RecordingStream>,
 ) -> Result<(PlayReport, Option<rerun::RecordingStream>)> {
-    let mut venv = ViewerEnv::new(cfg, opts.scene_seed, opts.seed)?;
+    let mut venv = match &opts.scenario {
+        Some(name) => ViewerEnv::scenario(name, cfg, opts.scene_seed, opts.seed)?,
+        None => ViewerEnv::new(cfg, opts.scene_seed, opts.seed)?,
+    };
     let terrain = venv.terrain.clone();
     let num_types = terrain.as_ref().map_or(1, |t| t.num_types());
     let level = terrain
@@ -169,7 +217,7 @@ pub fn play(
     let mut logger = match rec {
         Some(rec) => {
             let probe = ValueProbe::new(learner, opts.num_bars);
-            let mut l = EpisodeLogger::new(rec, venv.env.robot(), terrain, probe)?;
+            let mut l = EpisodeLogger::new(rec, venv.env.robot(), venv.ground.clone(), probe)?;
             l.set_flush_steps(opts.flush_steps);
             Some(l)
         }
@@ -183,6 +231,7 @@ pub fn play(
         let ep = run_episode(
             learner,
             &mut venv.env,
+            venv.hook.as_mut(),
             logger.as_mut(),
             opts.max_steps,
             &label,

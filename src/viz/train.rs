@@ -121,7 +121,7 @@ impl TrainRecorder {
             let logger = EpisodeLogger::new(
                 self.rec.clone(),
                 venv.env.robot(),
-                venv.terrain.clone(),
+                venv.ground.clone(),
                 probe,
             )?;
             self.eval = Some(Eval { venv, logger });
@@ -134,6 +134,7 @@ impl TrainRecorder {
         run_episode(
             learner,
             &mut ev.venv.env,
+            None,
             Some(&mut ev.logger),
             Some(self.opts.eval_steps),
             &label,
