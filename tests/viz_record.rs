@@ -509,17 +509,13 @@ fn a_named_scenario_plays_with_its_payload_and_ground() {
         .keys()
         .any(|k| k.starts_with("/world/terrain/chunk_")));
     assert!(s.entity("world/ground").is_none());
-    let e = viz::play(
-        &learner(&cfg),
-        &cfg.env,
-        &PlayOptions {
-            scenario: Some("lava".into()),
-            ..PlayOptions::default()
-        },
-        None,
-    )
-    .err()
-    .expect("unknown scenario refused");
-    assert!(format!("{e:#}").contains("lava"), "{e:#}");
+    let unknown = PlayOptions {
+        scenario: Some("lava".into()),
+        ..PlayOptions::default()
+    };
+    match viz::play(&learner(&cfg), &cfg.env, &unknown, None) {
+        Ok(_) => panic!("an unknown scenario must be refused"),
+        Err(e) => assert!(format!("{e:#}").contains("lava"), "{e:#}"),
+    }
     verify_with_rerun_cli(&path);
 }
