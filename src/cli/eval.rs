@@ -212,6 +212,17 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     Ok(())
 }
 
+/// The `--policy` list of a benchmark run `seeds` x `repeats` times, checked.
+fn repeated_policies(args: &[String], seeds: usize, repeats: usize) -> Result<Vec<NamedPolicy>> {
+    let policies = load_policies(args)?;
+    anyhow::ensure!(!policies.is_empty(), "give at least one --policy NAME=PATH");
+    anyhow::ensure!(
+        seeds > 0 && repeats > 0,
+        "--seeds and --repeats must be at least 1"
+    );
+    Ok(policies)
+}
+
 fn load_policies(args: &[String]) -> Result<Vec<NamedPolicy>> {
     let mut out: Vec<NamedPolicy> = Vec::new();
     for a in args {
@@ -273,12 +284,7 @@ fn finish(
 }
 
 fn ttf(a: &TtfArgs) -> Result<()> {
-    let policies = load_policies(&a.common.policies)?;
-    anyhow::ensure!(!policies.is_empty(), "give at least one --policy NAME=PATH");
-    anyhow::ensure!(
-        a.seeds > 0 && a.repeats > 0,
-        "--seeds and --repeats must be at least 1"
-    );
+    let policies = repeated_policies(&a.common.policies, a.seeds, a.repeats)?;
     let mut params = scenario_params(&a.common)?;
     params.rough.amplitude_m = a.rough_amplitude;
     if let Some(c) = &a.command {
@@ -330,12 +336,7 @@ fn ttf(a: &TtfArgs) -> Result<()> {
 }
 
 fn platform(a: &PlatformArgs) -> Result<()> {
-    let policies = load_policies(&a.common.policies)?;
-    anyhow::ensure!(!policies.is_empty(), "give at least one --policy NAME=PATH");
-    anyhow::ensure!(
-        a.seeds > 0 && a.repeats > 0,
-        "--seeds and --repeats must be at least 1"
-    );
+    let policies = repeated_policies(&a.common.policies, a.seeds, a.repeats)?;
     let mut params = scenario_params(&a.common)?;
     params.forward_mps = a.speed;
     let heights = if a.heights.is_empty() {
