@@ -44,6 +44,15 @@ impl Default for RunnerConfig {
     }
 }
 
+/// Worker threads for a `threads` setting where 0 means all cores.
+pub fn worker_threads(requested: usize) -> usize {
+    if requested == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        requested
+    }
+}
+
 /// Everything a run needs; saved in every checkpoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields, default)]

@@ -108,10 +108,10 @@ fn time_out_keeps_the_final_observation_and_resets() {
     for step in 1..=10 {
         let b = v.step(&zeros);
         if step < 10 {
-            assert!(b.dones.iter().all(|&d| d == 0.0));
+            assert!(b.dones.iter().all(|&d| !d));
         } else {
-            assert_eq!(b.dones, vec![1.0, 1.0]);
-            assert_eq!(b.time_outs, vec![1.0, 1.0]);
+            assert_eq!(b.dones, vec![true, true]);
+            assert_eq!(b.time_outs, vec![true, true]);
             // the final observation is of a standing robot mid-episode, the new one starts
             // with a zero previous action and differs from the final one
             assert_ne!(&b.final_obs[..OBS_DIM], &b.obs[..OBS_DIM]);

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
+use crate::config::worker_threads;
 use crate::eval::report::write_outputs;
 use crate::eval::{
     evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env, ActionMode,
@@ -161,14 +162,6 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     }
 }
 
-fn threads(n: usize) -> usize {
-    if n == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        n
-    }
-}
-
 fn tracking(a: &TrackingArgs) -> Result<()> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
     let policy = load_policy(&a.checkpoint)?;
@@ -182,7 +175,7 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         &policy.learner,
         &env,
         a.episodes,
-        threads(a.threads),
+        worker_threads(a.threads),
         a.seed,
         mode,
     )?;
@@ -307,7 +300,7 @@ fn ttf(a: &TtfArgs) -> Result<()> {
     let opts = TtfOptions {
         seeds: seeds(a.seed, a.seeds),
         repeats: a.repeats,
-        threads: threads(a.common.threads),
+        threads: worker_threads(a.common.threads),
         loads,
         terrains: vec![GroundKind::Flat, GroundKind::Rough],
         pushes: vec![false, true],
@@ -351,7 +344,7 @@ fn platform(a: &PlatformArgs) -> Result<()> {
         heights_m: heights,
         seeds: seeds(a.seed, a.seeds),
         repeats: a.repeats,
-        threads: threads(a.common.threads),
+        threads: worker_threads(a.common.threads),
         settle_s: a.settle_s,
         load: a
             .load
@@ -437,7 +430,7 @@ fn race(a: &RaceArgs) -> Result<()> {
     let opts = RaceOptions {
         agents: a.agents,
         episodes: a.episodes,
-        threads: threads(a.common.threads),
+        threads: worker_threads(a.common.threads),
         seed: a.seed,
         course_seed: a.course_seed,
         params,

@@ -19,12 +19,12 @@ pub struct Batch {
     /// [n x OBS_DIM] observations after the step (new episode's first after a reset).
     pub obs: Vec<f32>,
     pub rewards: Vec<f32>,
-    /// 1.0 where the episode ended this step (termination or time-out).
-    pub dones: Vec<f32>,
-    /// 1.0 where it ended by time-out.
-    pub time_outs: Vec<f32>,
+    /// The episode ended this step (termination or time-out).
+    pub dones: Vec<bool>,
+    /// It ended by time-out (the learner bootstraps from `final_obs`).
+    pub time_outs: Vec<bool>,
     /// [n x OBS_DIM]: the true last observation of an episode that ended this
-    /// step (valid where `dones` is 1; zeros after a physics failure).
+    /// step (valid where `dones` is set; zeros after a physics failure).
     pub final_obs: Vec<f32>,
     /// Risk thresholds exceeded / penalties fired this step, summed over envs.
     pub risk_exceeded: [u64; NUM_RISK_TERMS],
@@ -37,8 +37,8 @@ impl Batch {
         Batch {
             obs: vec![0.0; n * OBS_DIM],
             rewards: vec![0.0; n],
-            dones: vec![0.0; n],
-            time_outs: vec![0.0; n],
+            dones: vec![false; n],
+            time_outs: vec![false; n],
             final_obs: vec![0.0; n * OBS_DIM],
             risk_exceeded: [0; NUM_RISK_TERMS],
             risk_fired: [0; NUM_RISK_TERMS],
@@ -158,8 +158,8 @@ impl VecEnv {
                 .for_each(|((((((env, a), o), fo), r), d), t)| {
                     let res = env.step(a, o, fo);
                     *r = res.reward as f32;
-                    *d = res.done as u8 as f32;
-                    *t = res.time_out as u8 as f32;
+                    *d = res.done;
+                    *t = res.time_out;
                     env.last_step = res;
                 });
         });

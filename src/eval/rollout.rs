@@ -87,9 +87,7 @@ impl ScenarioRun {
         }
         let b = self.venv.step(actions);
         self.obs.copy_from_slice(&b.obs);
-        for (d, &x) in self.dones.iter_mut().zip(&b.dones) {
-            *d = x > 0.5;
-        }
+        self.dones.copy_from_slice(&b.dones);
         for ((h, e), &d) in self
             .hooks
             .iter_mut()

@@ -76,7 +76,7 @@ pub fn evaluate_tracking(
         let commands: Vec<[f64; 3]> = envs.envs().iter().map(|e| e.command()).collect();
         let b = envs.step(&actions);
         obs.copy_from_slice(&b.obs);
-        let done: Vec<bool> = b.dones.iter().map(|&d| d > 0.5).collect();
+        let done = b.dones.clone();
         for (i, env) in envs.envs().iter().enumerate() {
             if !alive[i] {
                 continue;

@@ -97,11 +97,7 @@ pub fn train(
     std::fs::write(dir.root.join("config.toml"), cfg.to_toml()).context("writing config.toml")?;
 
     let r = &cfg.runner;
-    let threads = if r.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        r.threads
-    };
+    let threads = crate::config::worker_threads(r.threads);
     // Envs restart fresh episodes on resume, seeded by the iteration so a resumed
     // run does not replay the first run's episodes.
     let env_seed = r.seed.wrapping_add(progress.iteration as u64 * 0x9E37_79B9);
@@ -125,8 +121,6 @@ pub fn train(
 
     let bar = progress_bar(progress.iteration, r.iterations);
     let mut obs = envs.batch().obs.clone();
-    let mut dones = vec![false; r.num_envs];
-    let mut time_outs = vec![false; r.num_envs];
     let mut episodes: Vec<EpisodeSummary> = Vec::with_capacity(r.num_envs * 4);
     let mut last_stats = EpisodeStats::default();
     let mut interrupted = false;
@@ -146,15 +140,11 @@ pub fn train(
         for _ in 0..r.steps_per_env {
             let out = learner.act(&obs, &mut rng);
             let b = envs.step(&out.actions);
-            for i in 0..r.num_envs {
-                dones[i] = b.dones[i] > 0.5;
-                time_outs[i] = b.time_outs[i] > 0.5;
-            }
             for k in 0..NUM_RISK_TERMS {
                 risk_exceeded[k] += b.risk_exceeded[k];
                 risk_fired[k] += b.risk_fired[k];
             }
-            rollout.push(&obs, &out, &b.rewards, &dones, &time_outs, &b.final_obs)?;
+            rollout.push(&obs, &out, &b.rewards, &b.dones, &b.time_outs, &b.final_obs)?;
             obs.copy_from_slice(&b.obs);
             episodes.extend(envs.drain_episodes());
         }
