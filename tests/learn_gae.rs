@@ -14,7 +14,6 @@ fn rollout() -> Rollout {
         let out = ActOutput {
             actions: vec![0.0],
             log_probs: vec![0.0],
-            values: vec![0.0],
             action_mean: vec![0.0],
             action_std: vec![1.0],
         };

@@ -46,7 +46,7 @@ fn train(kappa: f32, steps: usize) -> IqnCritic {
         let mut dz = vec![0.0; z.len()];
         quantile_huber_loss(&z, &taus, &targets, kappa, &mut dz);
         let mut g = vec![0.0; critic.params.len()];
-        critic.backward(&mut g, &obs, 4, &cache, &dz);
+        critic.backward(&mut g, &obs, 4, &mut cache, &dz);
         let lr = if step < steps * 3 / 4 { 3e-3 } else { 3e-4 };
         adam.step(&cfg, lr, step as u64, &mut critic.params.data, &g);
     }

@@ -2,6 +2,7 @@
 //! randomisation and pushes are data sampled from the env's own RNG.
 
 use std::sync::Arc;
+use std::time::Instant;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -107,6 +108,11 @@ pub struct Env {
     last_summary: Option<EpisodeSummary>,
     /// What the last `step` returned (read by `VecEnv` for batch counters).
     pub last_step: StepResult,
+    /// CPU time of `step` since `VecEnv` last read it: in the physics (PD +
+    /// `mj_step` x decimation) and in total (physics + observation, reward,
+    /// risk, pushes), nanoseconds.
+    pub physics_ns: u64,
+    pub step_ns: u64,
 }
 
 impl Env {
@@ -155,6 +161,8 @@ impl Env {
             instabilities: 0,
             last_summary: None,
             last_step: StepResult::default(),
+            physics_ns: 0,
+            step_ns: 0,
         };
         Ok(env)
     }
@@ -287,6 +295,18 @@ impl Env {
     /// observation of the finished episode and the caller must [`Env::reset`].
     /// Physics failures end the episode (counted), never panic.
     pub fn step(&mut self, action: &[f32], obs: &mut [f32], final_obs: &mut [f32]) -> StepResult {
+        let start = Instant::now();
+        let result = self.step_untimed(action, obs, final_obs);
+        self.step_ns += start.elapsed().as_nanos() as u64;
+        result
+    }
+
+    fn step_untimed(
+        &mut self,
+        action: &[f32],
+        obs: &mut [f32],
+        final_obs: &mut [f32],
+    ) -> StepResult {
         debug_assert_eq!(action.len(), ACT_DIM);
         self.previous_action = self.action;
         self.action.copy_from_slice(action);
@@ -296,7 +316,10 @@ impl Env {
             pushed,
             ..Default::default()
         };
-        let torques = match self.robot.policy_step(&self.action) {
+        let physics_start = Instant::now();
+        let torques = self.robot.policy_step(&self.action);
+        self.physics_ns += physics_start.elapsed().as_nanos() as u64;
+        let torques = match torques {
             Ok(t) => t,
             Err(_) => {
                 self.instabilities += 1;

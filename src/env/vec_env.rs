@@ -3,6 +3,7 @@
 //! bit-identical rollouts whatever the thread count.
 
 use std::sync::Arc;
+use std::time::Instant;
 
 use rayon::prelude::*;
 
@@ -47,8 +48,22 @@ impl Batch {
     }
 }
 
+/// Where the wall time of [`VecEnv::step`] went since the last
+/// [`VecEnv::take_times`], in seconds. The parallel pass is split between
+/// physics and task by the envs' own CPU-time shares.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTimes {
+    /// PD control and `mj_step` x decimation.
+    pub physics_s: f64,
+    /// Observation, reward, risk terms, pushes, commands.
+    pub task_s: f64,
+    /// Counters, curriculum and auto-resets after the parallel pass.
+    pub reset_s: f64,
+}
+
 pub struct VecEnv {
     envs: Vec<Env>,
+    times: StepTimes,
     /// Terrain levels and types (rough terrain only).
     curriculum: Option<Curriculum>,
     pool: rayon::ThreadPool,
@@ -88,6 +103,7 @@ impl VecEnv {
             .map(|t| Curriculum::new(t.config(), n, seed));
         let mut v = VecEnv {
             envs,
+            times: StepTimes::default(),
             curriculum,
             pool,
             batch: Batch::new(n),
@@ -145,6 +161,7 @@ impl VecEnv {
             self.envs.len() * ACT_DIM,
             "actions must be n_envs x {ACT_DIM}"
         );
+        let start = Instant::now();
         let b = &mut self.batch;
         self.pool.install(|| {
             self.envs
@@ -163,6 +180,20 @@ impl VecEnv {
                     env.last_step = res;
                 });
         });
+        let parallel_s = start.elapsed().as_secs_f64();
+        let (physics_ns, step_ns) = self.envs.iter_mut().fold((0u64, 0u64), |(p, s), env| {
+            let out = (p + env.physics_ns, s + env.step_ns);
+            (env.physics_ns, env.step_ns) = (0, 0);
+            out
+        });
+        let physics_share = if step_ns > 0 {
+            physics_ns as f64 / step_ns as f64
+        } else {
+            0.0
+        };
+        self.times.physics_s += parallel_s * physics_share;
+        self.times.task_s += parallel_s * (1.0 - physics_share);
+        let rest_start = Instant::now();
         b.risk_exceeded = [0; NUM_RISK_TERMS];
         b.risk_fired = [0; NUM_RISK_TERMS];
         b.pushes = 0;
@@ -196,7 +227,13 @@ impl VecEnv {
                     }
                 });
         });
+        self.times.reset_s += rest_start.elapsed().as_secs_f64();
         &self.batch
+    }
+
+    /// Step time split since the last call (and resets it).
+    pub fn take_times(&mut self) -> StepTimes {
+        std::mem::take(&mut self.times)
     }
 
     /// Episodes that finished since the last call.

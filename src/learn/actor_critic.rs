@@ -73,7 +73,8 @@ impl ActorCritic {
     }
 
     /// Samples `a = mean + std * eps`, `eps ~ N(0, I)` drawn from `rng` in
-    /// row-major order, with `log pi(a|s)` and the distorted value.
+    /// row-major order, with `log pi(a|s)`. (No critic pass: the update
+    /// evaluates the critic on the whole rollout at once.)
     pub fn act<R: Rng + ?Sized>(&self, obs: &[f32], rng: &mut R) -> ActOutput {
         let n = self.rows(obs);
         let a = self.act_dim();
@@ -95,7 +96,6 @@ impl ActorCritic {
         ActOutput {
             actions,
             log_probs,
-            values: self.distorted_value(obs),
             action_std: std.repeat(n),
             action_mean,
         }

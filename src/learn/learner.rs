@@ -4,7 +4,7 @@
 use super::actor_critic::{ActorCritic, Critic};
 use super::adam::AdamState;
 use super::nets::{GaussianActor, IqnCritic, ParamSet, ScalarCritic};
-use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats};
+use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
 use super::risk::Distortion;
 use super::storage::{ActOutput, Rollout};
 use anyhow::{bail, ensure, Result};
@@ -120,6 +120,8 @@ pub struct Learner {
     ac: ActorCritic,
     opt: Optimizer,
     rng: ChaCha8Rng,
+    /// The update's buffers, reused between updates.
+    ws: Workspace,
 }
 
 impl Learner {
@@ -161,6 +163,7 @@ impl Learner {
             ac,
             opt,
             rng,
+            ws: Workspace::default(),
         })
     }
 
@@ -214,6 +217,7 @@ impl Learner {
         ppo::update(
             &mut self.ac,
             &mut self.opt,
+            &mut self.ws,
             rollout,
             &self.cfg.ppo,
             &ccfg,

@@ -9,9 +9,55 @@
 //! them against finite differences (see `nets` tests).
 
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Elements per rayon task for element-wise kernels.
 const CHUNK: usize = 16 * 1024;
+
+/// Which GEMM kernels [`gemm`] runs. Process-wide; `Auto` unless changed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernels {
+    /// `gemm` 0.19: the widest SIMD the CPU offers, chosen at run time
+    /// (AVX-512 F on CPUs that have it, else AVX2 + FMA, else SSE).
+    Auto,
+    /// `gemm` 0.15, the learner's first kernels: AVX2 on stable Rust even where
+    /// AVX-512 exists. Kept for side-by-side benchmarks (`benches/ppo.rs`).
+    Legacy,
+}
+
+static KERNELS: AtomicU8 = AtomicU8::new(0);
+
+/// Selects the GEMM kernels for the whole process (benchmarks compare both).
+pub fn set_kernels(k: Kernels) {
+    KERNELS.store(k as u8, Ordering::Relaxed);
+}
+
+/// The GEMM kernels in use.
+pub fn kernels() -> Kernels {
+    match KERNELS.load(Ordering::Relaxed) {
+        0 => Kernels::Auto,
+        _ => Kernels::Legacy,
+    }
+}
+
+/// The instruction set [`Kernels::Auto`] runs on this CPU (for logs).
+pub fn simd_level() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            return "avx512f";
+        }
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            return "avx2+fma";
+        }
+        "sse2"
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        "native"
+    }
+}
 
 /// `c[m x n] = (accumulate ? c : 0) + op(a)[m x k] * op(b)[k x n]`, all row-major.
 /// `a_t`: `a` is stored as `k x m` (use its transpose); `b_t`: `b` is stored as `n x k`.
@@ -47,30 +93,57 @@ pub fn gemm(
     } else {
         (n as isize, 1)
     };
+    let (c, a, b) = (c.as_mut_ptr(), a.as_ptr(), b.as_ptr());
+    let n_rs = n as isize;
     // SAFETY: the asserts above bound every index the strides can reach:
     // a: max (m-1)*a_rs + (k-1)*a_cs < m*k, same for b and c; `c` is exclusive.
+    // Both crates take the same arguments (dst, its column/row strides, read_dst,
+    // lhs, rhs, alpha, beta, conjugations, parallelism).
     unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            c.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            a.as_ptr(),
-            a_cs,
-            a_rs,
-            b.as_ptr(),
-            b_cs,
-            b_rs,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::Rayon(0),
-        );
+        match kernels() {
+            Kernels::Auto => gemm::gemm(
+                m,
+                n,
+                k,
+                c,
+                1,
+                n_rs,
+                accumulate,
+                a,
+                a_cs,
+                a_rs,
+                b,
+                b_cs,
+                b_rs,
+                1.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::Rayon(0),
+            ),
+            Kernels::Legacy => gemm_legacy::gemm(
+                m,
+                n,
+                k,
+                c,
+                1,
+                n_rs,
+                accumulate,
+                a,
+                a_cs,
+                a_rs,
+                b,
+                b_cs,
+                b_rs,
+                1.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm_legacy::Parallelism::Rayon(0),
+            ),
+        }
     }
 }
 

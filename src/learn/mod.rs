@@ -51,6 +51,6 @@ pub mod storage;
 pub use actor_critic::{ActorCritic, Critic};
 pub use checkpoint::{load_checkpoint, save_checkpoint};
 pub use learner::{CriticKind, Learner, LearnerConfig, NamedTensor};
-pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats};
+pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats, UpdateTimes};
 pub use risk::{Distortion, IQR_TAUS};
 pub use storage::{ActOutput, Rollout};

@@ -90,16 +90,8 @@ impl Linear {
         gemm(batch, self.out, self.inp, x, false, w, false, y, true);
     }
 
-    /// Accumulates dW, db into `g`; returns dx if asked.
-    fn backward(
-        &self,
-        p: &[f32],
-        g: &mut [f32],
-        x: &[f32],
-        batch: usize,
-        dy: &[f32],
-        want_dx: bool,
-    ) -> Option<Vec<f32>> {
+    /// Accumulates dW, db into `g` from `dy` (`batch x out`).
+    fn backward_params(&self, g: &mut [f32], x: &[f32], batch: usize, dy: &[f32]) {
         let (inp, out) = (self.inp, self.out);
         gemm(
             inp,
@@ -113,21 +105,23 @@ impl Linear {
             true,
         );
         add_col_sums(dy, &mut g[self.b..self.b + out]);
-        want_dx.then(|| {
-            let mut dx = vec![0.0; batch * inp];
-            gemm(
-                batch,
-                inp,
-                out,
-                dy,
-                false,
-                &p[self.w..self.w + inp * out],
-                true,
-                &mut dx,
-                false,
-            );
-            dx
-        })
+    }
+
+    /// `dx = dy W^T` (`dx` is resized to `batch x inp`).
+    fn backward_input(&self, p: &[f32], batch: usize, dy: &[f32], dx: &mut Vec<f32>) {
+        let (inp, out) = (self.inp, self.out);
+        dx.resize(batch * inp, 0.0);
+        gemm(
+            batch,
+            inp,
+            out,
+            dy,
+            false,
+            &p[self.w..self.w + inp * out],
+            true,
+            dx,
+            false,
+        );
     }
 }
 
@@ -139,10 +133,12 @@ pub struct Mlp {
     activate_last: bool,
 }
 
-/// Per-layer outputs of an [`Mlp`] forward pass, kept for the backward pass.
+/// Per-layer outputs of an [`Mlp`] forward pass, kept for the backward pass,
+/// and the backward pass's scratch: reused, so steady-state passes allocate nothing.
 #[derive(Clone, Debug, Default)]
 pub struct MlpCache {
     acts: Vec<Vec<f32>>,
+    scratch: Vec<f32>,
 }
 
 impl MlpCache {
@@ -193,8 +189,9 @@ impl Mlp {
         }
     }
 
-    /// Backward pass from `dout` (`batch x out`), accumulating into `g`.
-    /// Returns d/dx only if `want_dx`.
+    /// Backward pass from `dout` (`batch x out`), accumulating parameter
+    /// gradients into `g`. `dout` is used as scratch; with `want_dx` it holds
+    /// d/dx (`batch x in`) on return.
     #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
@@ -202,21 +199,22 @@ impl Mlp {
         g: &mut [f32],
         x: &[f32],
         batch: usize,
-        cache: &MlpCache,
-        mut dout: Vec<f32>,
+        cache: &mut MlpCache,
+        dout: &mut Vec<f32>,
         want_dx: bool,
-    ) -> Option<Vec<f32>> {
+    ) {
+        let MlpCache { acts, scratch } = cache;
         for (l, layer) in self.layers.iter().enumerate().rev() {
             if self.activated(l) {
-                elu_backward_inplace(&mut dout, &cache.acts[l]);
+                elu_backward_inplace(dout, &acts[l]);
             }
-            let input = if l == 0 { x } else { &cache.acts[l - 1] };
-            match layer.backward(p, g, input, batch, &dout, l > 0 || want_dx) {
-                Some(dx) if l > 0 => dout = dx,
-                dx => return dx,
+            let input = if l == 0 { x } else { &acts[l - 1] };
+            layer.backward_params(g, input, batch, dout);
+            if l > 0 || want_dx {
+                layer.backward_input(p, batch, dout, scratch);
+                std::mem::swap(dout, scratch);
             }
         }
-        None
     }
 }
 
@@ -274,15 +272,16 @@ impl GaussianActor {
         cache.acts.pop().unwrap_or_default()
     }
 
-    /// Accumulate parameter gradients from d loss / d mean (`batch x act_dim`).
-    /// (The log-std gradient is added by the caller at `log_std_offset()`.)
+    /// Accumulate parameter gradients from d loss / d mean (`batch x act_dim`,
+    /// overwritten as scratch). (The log-std gradient is added by the caller at
+    /// `log_std_offset()`.)
     pub fn backward(
         &self,
         grads: &mut [f32],
         obs: &[f32],
         batch: usize,
-        cache: &MlpCache,
-        d_mean: Vec<f32>,
+        cache: &mut MlpCache,
+        d_mean: &mut Vec<f32>,
     ) {
         self.mlp
             .backward(&self.params.data, grads, obs, batch, cache, d_mean, false);
@@ -316,14 +315,14 @@ impl ScalarCritic {
         cache.acts.pop().unwrap_or_default()
     }
 
-    /// Accumulate gradients from d loss / d V (`batch`).
+    /// Accumulate gradients from d loss / d V (`batch`, overwritten as scratch).
     pub fn backward(
         &self,
         grads: &mut [f32],
         obs: &[f32],
         batch: usize,
-        cache: &MlpCache,
-        dv: Vec<f32>,
+        cache: &mut MlpCache,
+        dv: &mut Vec<f32>,
     ) {
         self.mlp
             .backward(&self.params.data, grads, obs, batch, cache, dv, false);
@@ -356,6 +355,18 @@ pub struct IqnCache {
     emb: Vec<f32>,
     /// `N x F` psi(tau) * w.
     g: Vec<f32>,
+    /// `batch x N` output `Z`.
+    z: Vec<f32>,
+    /// Backward scratch: `batch x F` d phi, `N x F` d g.
+    dphi: Vec<f32>,
+    dg: Vec<f32>,
+}
+
+impl IqnCache {
+    /// `Z` of the last forward pass (`batch x N`).
+    pub fn output(&self) -> &[f32] {
+        &self.z
+    }
 }
 
 impl IqnCritic {
@@ -382,14 +393,15 @@ impl IqnCritic {
         }
     }
 
-    /// `Z_tau(s)` for every observation and tau: returns `batch x taus.len()`.
-    pub fn forward(
+    /// `Z_tau(s)` for every observation and tau: returns `batch x taus.len()`
+    /// (kept in `cache`).
+    pub fn forward<'c>(
         &self,
         obs: &[f32],
         batch: usize,
         taus: &[f32],
-        cache: &mut IqnCache,
-    ) -> Vec<f32> {
+        cache: &'c mut IqnCache,
+    ) -> &'c [f32] {
         let p = &self.params.data;
         let (n, f) = (taus.len(), self.feat);
         self.trunk.forward(p, obs, batch, &mut cache.trunk);
@@ -406,7 +418,8 @@ impl IqnCritic {
         for row in cache.emb.chunks_exact(f) {
             cache.g.extend(row.iter().zip(w).map(|(e, w)| e * w));
         }
-        let mut z = vec![p[self.head_b]; batch * n];
+        cache.z.clear();
+        cache.z.resize(batch * n, p[self.head_b]);
         gemm(
             batch,
             n,
@@ -415,15 +428,17 @@ impl IqnCritic {
             false,
             &cache.g,
             true,
-            &mut z,
+            &mut cache.z,
             true,
         );
-        z
+        &cache.z
     }
 
     /// Inference: `batch x taus.len()` quantiles.
     pub fn quantiles(&self, obs: &[f32], batch: usize, taus: &[f32]) -> Vec<f32> {
-        self.forward(obs, batch, taus, &mut IqnCache::default())
+        let mut cache = IqnCache::default();
+        self.forward(obs, batch, taus, &mut cache);
+        cache.z
     }
 
     /// Accumulate gradients from d loss / d Z (`batch x N`).
@@ -432,7 +447,7 @@ impl IqnCritic {
         grads: &mut [f32],
         obs: &[f32],
         batch: usize,
-        cache: &IqnCache,
+        cache: &mut IqnCache,
         dz: &[f32],
     ) {
         let p = &self.params.data;
@@ -440,10 +455,11 @@ impl IqnCritic {
         let n = cache.g.len() / f;
         let phi = cache.trunk.output();
         grads[self.head_b] += dz.iter().sum::<f32>();
-        let mut dphi = vec![0.0; batch * f];
-        gemm(batch, f, n, dz, false, &cache.g, false, &mut dphi, false);
-        let mut dg = vec![0.0; n * f];
-        gemm(n, f, batch, dz, true, phi, false, &mut dg, false);
+        let (dphi, dg) = (&mut cache.dphi, &mut cache.dg);
+        dphi.resize(batch * f, 0.0);
+        gemm(batch, f, n, dz, false, &cache.g, false, dphi, false);
+        dg.resize(n * f, 0.0);
+        gemm(n, f, batch, dz, true, phi, false, dg, false);
         let w = &p[self.head_w..self.head_w + f];
         let gw = &mut grads[self.head_w..self.head_w + f];
         for (dg_row, e_row) in dg.chunks_exact_mut(f).zip(cache.emb.chunks_exact(f)) {
@@ -457,9 +473,9 @@ impl IqnCritic {
                 };
             }
         }
-        self.embed.backward(p, grads, &cache.cos, n, &dg, false);
+        self.embed.backward_params(grads, &cache.cos, n, dg);
         self.trunk
-            .backward(p, grads, obs, batch, &cache.trunk, dphi, false);
+            .backward(p, grads, obs, batch, &mut cache.trunk, dphi, false);
     }
 }
 
@@ -510,7 +526,7 @@ mod tests {
         let mut cache = MlpCache::default();
         actor.forward(&obs, b, &mut cache);
         let mut g = vec![0.0; actor.params.len()];
-        actor.backward(&mut g, &obs, b, &cache, c.clone());
+        actor.backward(&mut g, &obs, b, &mut cache, &mut c.clone());
         let mut ps = actor.params.clone();
         let loss = |ps: &ParamSet| {
             let mut act = actor.clone();
@@ -536,7 +552,7 @@ mod tests {
         let mut cache = IqnCache::default();
         let _ = critic.forward(&obs, b, &taus, &mut cache);
         let mut g = vec![0.0; critic.params.len()];
-        critic.backward(&mut g, &obs, b, &cache, &c);
+        critic.backward(&mut g, &obs, b, &mut cache, &c);
         let mut ps = critic.params.clone();
         let loss = |ps: &ParamSet| {
             let mut cr = critic.clone();
@@ -560,7 +576,7 @@ mod tests {
         let mut cache = MlpCache::default();
         critic.forward(&obs, b, &mut cache);
         let mut g = vec![0.0; critic.params.len()];
-        critic.backward(&mut g, &obs, b, &cache, c.clone());
+        critic.backward(&mut g, &obs, b, &mut cache, &mut c.clone());
         let mut ps = critic.params.clone();
         let loss = |ps: &ParamSet| {
             let mut cr = critic.clone();

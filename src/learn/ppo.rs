@@ -9,6 +9,7 @@ use super::nets::{IqnCache, MlpCache};
 use super::risk::{midpoint_taus, quantile_huber_loss};
 use super::storage::{gae, next_values, quantile_targets, Rollout};
 use anyhow::Result;
+use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
@@ -126,6 +127,41 @@ pub struct UpdateStats {
     pub actor_grad_norm: f32,
     /// Critic part of `grad_norm`.
     pub critic_grad_norm: f32,
+    /// Fraction of mini-batches whose gradient the clip scaled down.
+    pub clipped_fraction: f32,
+    /// Where the update's wall time went (seconds, summed over mini-batches).
+    pub time: UpdateTimes,
+}
+
+/// Wall time of the phases of one update, in seconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct UpdateTimes {
+    /// Values, advantages and critic targets from the collection-time critic.
+    pub targets_s: f64,
+    /// Mini-batch gathering and advantage normalisation.
+    pub gather_s: f64,
+    /// Forward passes of actor and critic.
+    pub forward_s: f64,
+    /// Surrogate, KL, entropy and critic losses with their output gradients.
+    pub loss_s: f64,
+    /// Backward passes of actor and critic.
+    pub backward_s: f64,
+    /// Gradient norms and clipping.
+    pub clip_s: f64,
+    /// Adam steps.
+    pub adam_s: f64,
+}
+
+impl UpdateTimes {
+    pub fn total_s(&self) -> f64 {
+        self.targets_s
+            + self.gather_s
+            + self.forward_s
+            + self.loss_s
+            + self.backward_s
+            + self.clip_s
+            + self.adam_s
+    }
 }
 
 /// Adam state for actor and critic, the shared step count, and the current lr.
@@ -138,6 +174,30 @@ pub struct Optimizer {
     pub lr: f32,
 }
 
+/// Buffers of the update, kept between mini-batches and updates so that a
+/// steady-state mini-batch allocates nothing.
+#[derive(Clone, Debug, Default)]
+pub struct Workspace {
+    idx: Vec<usize>,
+    obs: Vec<f32>,
+    actions: Vec<f32>,
+    old_mu: Vec<f32>,
+    old_std: Vec<f32>,
+    old_logp: Vec<f32>,
+    adv: Vec<f32>,
+    vtarget: Vec<f32>,
+    std: Vec<f32>,
+    d_mu: Vec<f32>,
+    d_log_std: Vec<f32>,
+    d_value: Vec<f32>,
+    taus: Vec<f32>,
+    g_actor: Vec<f32>,
+    g_critic: Vec<f32>,
+    actor_cache: MlpCache,
+    scalar_cache: MlpCache,
+    iqn_cache: IqnCache,
+}
+
 /// Per-transition training targets computed once per update.
 struct Targets {
     adv: Vec<f32>,
@@ -145,12 +205,49 @@ struct Targets {
     value_targets: Vec<f32>,
 }
 
-fn gather(src: &[f32], width: usize, idx: &[usize]) -> Vec<f32> {
-    let mut out = Vec::with_capacity(idx.len() * width);
+/// `out = src[idx[k]]` rows of `width` values (reusing `out`'s capacity).
+fn gather_into(out: &mut Vec<f32>, src: &[f32], width: usize, idx: &[usize]) {
+    out.clear();
     for &i in idx {
         out.extend_from_slice(&src[i * width..(i + 1) * width]);
     }
-    out
+}
+
+/// Sum of squares in f64 (gradient norms).
+fn sum_sq(g: &[f32]) -> f64 {
+    g.iter().map(|g| (*g as f64) * (*g as f64)).sum()
+}
+
+/// Scales `g` by `s`.
+fn scale(g: &mut [f32], s: f32) {
+    g.iter_mut().for_each(|g| *g *= s);
+}
+
+/// Clips the gradients as `mode` says; returns whether anything was scaled.
+fn clip_grads(mode: GradClip, max_norm: f32, g_actor: &mut [f32], g_critic: &mut [f32], sq_a: f64, sq_c: f64) -> bool {
+    match mode {
+        GradClip::Global => {
+            let norm = (sq_a + sq_c).sqrt() as f32;
+            if norm > max_norm {
+                let s = max_norm / (norm + 1e-6);
+                scale(g_actor, s);
+                scale(g_critic, s);
+                return true;
+            }
+            false
+        }
+        GradClip::PerNetwork => {
+            let mut any = false;
+            for (g, sq) in [(g_actor, sq_a), (g_critic, sq_c)] {
+                let norm = sq.sqrt() as f32;
+                if norm > max_norm {
+                    scale(g, max_norm / (norm + 1e-6));
+                    any = true;
+                }
+            }
+            any
+        }
+    }
 }
 
 /// Values, advantages and critic targets from the collection-time critic.
@@ -215,6 +312,7 @@ fn targets(
 pub fn update(
     ac: &mut ActorCritic,
     opt: &mut Optimizer,
+    ws: &mut Workspace,
     r: &Rollout,
     cfg: &PpoConfig,
     ccfg: &CriticLossConfig,
@@ -229,42 +327,69 @@ pub fn update(
         ac.obs_dim(),
         ac.act_dim()
     );
+    let mut time = UpdateTimes::default();
+    let mut clock = Instant::now();
+    // seconds since the last lap
+    let mut lap = || {
+        let now = Instant::now();
+        let dt = (now - clock).as_secs_f64();
+        clock = now;
+        dt
+    };
     let tg = targets(ac, r, cfg, ccfg, rng);
+    time.targets_s += lap();
     let total = r.num_steps * r.num_envs;
     let n_mb = cfg.num_mini_batches.clamp(1, total);
     let (od, ad) = (r.obs_dim, r.act_dim);
     let vt_width = tg.value_targets.len() / total;
     let mut stats = UpdateStats::default();
     let mut count = 0usize;
-    let mut idx: Vec<usize> = (0..total).collect();
-    let mut actor_cache = MlpCache::default();
-    let mut scalar_cache = MlpCache::default();
-    let mut iqn_cache = IqnCache::default();
+    let mut clipped_steps = 0usize;
+    ws.idx.clear();
+    ws.idx.extend(0..total);
+    ws.g_actor.resize(ac.actor.params.len(), 0.0);
+    ws.g_critic.resize(ac.critic.params().len(), 0.0);
     for _ in 0..cfg.num_learning_epochs {
-        idx.shuffle(rng);
+        ws.idx.shuffle(rng);
         for mb in 0..n_mb {
-            let batch = &idx[mb * total / n_mb..(mb + 1) * total / n_mb];
+            let batch = &ws.idx[mb * total / n_mb..(mb + 1) * total / n_mb];
             let b = batch.len();
-            let obs = gather(&r.obs, od, batch);
-            let actions = gather(&r.actions, ad, batch);
-            let old_mu = gather(&r.action_mean, ad, batch);
-            let old_std = gather(&r.action_std, ad, batch);
-            let old_logp = gather(&r.log_probs, 1, batch);
-            let mut adv = gather(&tg.adv, 1, batch);
-            let vtarget = gather(&tg.value_targets, vt_width, batch);
+            gather_into(&mut ws.obs, &r.obs, od, batch);
+            gather_into(&mut ws.actions, &r.actions, ad, batch);
+            gather_into(&mut ws.old_mu, &r.action_mean, ad, batch);
+            gather_into(&mut ws.old_std, &r.action_std, ad, batch);
+            gather_into(&mut ws.old_logp, &r.log_probs, 1, batch);
+            gather_into(&mut ws.adv, &tg.adv, 1, batch);
+            gather_into(&mut ws.vtarget, &tg.value_targets, vt_width, batch);
+            let adv = &mut ws.adv;
             if cfg.normalize_advantage_per_mini_batch && b > 1 {
                 let mean = adv.iter().sum::<f32>() / b as f32;
                 let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
                 let inv = 1.0 / (var.sqrt() + 1e-8);
                 adv.iter_mut().for_each(|a| *a = (*a - mean) * inv);
             }
+            time.gather_s += lap();
 
-            // ---- actor ----
-            ac.actor.forward(&obs, b, &mut actor_cache);
-            let mu = actor_cache.output();
-            let log_std = ac.actor.log_std().to_vec();
-            let std: Vec<f32> = log_std.iter().map(|l| l.exp()).collect();
+            // ---- forward ----
+            ac.actor.forward(&ws.obs, b, &mut ws.actor_cache);
+            match &ac.critic {
+                Critic::Iqn(c) => {
+                    ws.taus.clear();
+                    ws.taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
+                    c.forward(&ws.obs, b, &ws.taus, &mut ws.iqn_cache);
+                }
+                Critic::Scalar(c) => c.forward(&ws.obs, b, &mut ws.scalar_cache),
+            }
+            time.forward_s += lap();
+
+            // ---- losses and their output gradients ----
+            let mu = ws.actor_cache.output();
+            let log_std = ac.actor.log_std();
+            ws.std.clear();
+            ws.std.extend(log_std.iter().map(|l| l.exp()));
+            let std = &ws.std;
             let sum_log_std: f32 = log_std.iter().sum();
+            let (actions, old_mu, old_std) = (&ws.actions, &ws.old_mu, &ws.old_std);
 
             // KL(old || new) of diagonal Gaussians, the adaptive-lr signal
             let mut kl = 0.0f64;
@@ -284,8 +409,12 @@ pub fn update(
             }
 
             // clipped surrogate: L = mean_b max(-A r, -A clip(r, 1-e, 1+e)), r = exp(logp - logp_old)
-            let mut d_mu = vec![0.0f32; b * ad];
-            let mut d_log_std = vec![-cfg.entropy_coef; ad]; // d(-c_e H)/d log_std
+            let d_mu = &mut ws.d_mu;
+            d_mu.clear();
+            d_mu.resize(b * ad, 0.0);
+            let d_log_std = &mut ws.d_log_std;
+            d_log_std.clear();
+            d_log_std.resize(ad, -cfg.entropy_coef); // d(-c_e H)/d log_std
             let (mut pol_loss, mut clipped) = (0.0f64, 0usize);
             for s in 0..b {
                 let row = s * ad..(s + 1) * ad;
@@ -296,8 +425,8 @@ pub fn update(
                 }
                 let logp = -0.5 * sq - sum_log_std - ad as f32 * HALF_LN_2PI;
                 // log-ratio capped so that a stale sample cannot overflow exp to inf
-                let ratio = (logp - old_logp[s]).min(20.0).exp();
-                let a = adv[s];
+                let ratio = (logp - ws.old_logp[s]).min(20.0).exp();
+                let a = ws.adv[s];
                 let unclipped = -a * ratio;
                 let clip = -a * ratio.clamp(1.0 - cfg.clip_param, 1.0 + cfg.clip_param);
                 pol_loss += unclipped.max(clip) as f64;
@@ -319,75 +448,94 @@ pub fn update(
                 }
             }
             let entropy = sum_log_std + ad as f32 * (0.5 + HALF_LN_2PI);
-            let mut g_actor = vec![0.0f32; ac.actor.params.len()];
-            ac.actor.backward(&mut g_actor, &obs, b, &actor_cache, d_mu);
-            let off = ac.actor.log_std_offset();
-            for (g, d) in g_actor[off..off + ad].iter_mut().zip(&d_log_std) {
-                *g += d;
-            }
-
-            // ---- critic ----
-            let mut g_critic = vec![0.0f32; ac.critic.params().len()];
             let value_loss = match &ac.critic {
-                Critic::Iqn(c) => {
-                    let taus: Vec<f32> = (0..ccfg.num_taus).map(|_| rng.gen::<f32>()).collect();
-                    let z = c.forward(&obs, b, &taus, &mut iqn_cache);
-                    let mut dz = vec![0.0; z.len()];
-                    let loss = quantile_huber_loss(&z, &taus, &vtarget, ccfg.kappa, &mut dz);
-                    dz.iter_mut().for_each(|d| *d *= cfg.value_loss_coef);
-                    c.backward(&mut g_critic, &obs, b, &iqn_cache, &dz);
+                Critic::Iqn(_) => {
+                    let z = ws.iqn_cache.output();
+                    ws.d_value.clear();
+                    ws.d_value.resize(z.len(), 0.0);
+                    let loss =
+                        quantile_huber_loss(z, &ws.taus, &ws.vtarget, ccfg.kappa, &mut ws.d_value);
+                    scale(&mut ws.d_value, cfg.value_loss_coef);
                     loss
                 }
-                Critic::Scalar(c) => {
-                    c.forward(&obs, b, &mut scalar_cache);
-                    let v = scalar_cache.output();
+                Critic::Scalar(_) => {
+                    let v = ws.scalar_cache.output();
                     let mut loss = 0.0;
-                    let dv: Vec<f32> = v
-                        .iter()
-                        .zip(&vtarget)
-                        .map(|(v, t)| {
-                            loss += (t - v) * (t - v);
-                            cfg.value_loss_coef * 2.0 * (v - t) / b as f32
-                        })
-                        .collect();
-                    c.backward(&mut g_critic, &obs, b, &scalar_cache, dv);
+                    ws.d_value.clear();
+                    ws.d_value.extend(v.iter().zip(&ws.vtarget).map(|(v, t)| {
+                        loss += (t - v) * (t - v);
+                        cfg.value_loss_coef * 2.0 * (v - t) / b as f32
+                    }));
                     loss / b as f32
                 }
             };
+            time.loss_s += lap();
 
-            // ---- global grad-norm clip + Adam ----
-            let sq = |g: &[f32]| g.iter().map(|g| (*g as f64) * (*g as f64)).sum::<f64>();
-            let (sq_a, sq_c) = (sq(&g_actor), sq(&g_critic));
-            let norm = (sq_a + sq_c).sqrt() as f32;
-            if norm > cfg.max_grad_norm {
-                let s = cfg.max_grad_norm / (norm + 1e-6);
-                g_actor
-                    .iter_mut()
-                    .chain(g_critic.iter_mut())
-                    .for_each(|g| *g *= s);
+            // ---- backward ----
+            ws.g_actor.fill(0.0);
+            ws.g_critic.fill(0.0);
+            ac.actor
+                .backward(&mut ws.g_actor, &ws.obs, b, &mut ws.actor_cache, &mut ws.d_mu);
+            let off = ac.actor.log_std_offset();
+            for (g, d) in ws.g_actor[off..off + ad].iter_mut().zip(&ws.d_log_std) {
+                *g += d;
             }
+            match &ac.critic {
+                Critic::Iqn(c) => c.backward(
+                    &mut ws.g_critic,
+                    &ws.obs,
+                    b,
+                    &mut ws.iqn_cache,
+                    &ws.d_value,
+                ),
+                Critic::Scalar(c) => c.backward(
+                    &mut ws.g_critic,
+                    &ws.obs,
+                    b,
+                    &mut ws.scalar_cache,
+                    &mut ws.d_value,
+                ),
+            }
+            time.backward_s += lap();
+
+            // ---- gradient-norm clip ----
+            let (sq_a, sq_c) = (sum_sq(&ws.g_actor), sum_sq(&ws.g_critic));
+            if clip_grads(
+                cfg.grad_clip,
+                cfg.max_grad_norm,
+                &mut ws.g_actor,
+                &mut ws.g_critic,
+                sq_a,
+                sq_c,
+            ) {
+                clipped_steps += 1;
+            }
+            time.clip_s += lap();
+
+            // ---- Adam ----
             opt.step += 1;
             opt.actor.step(
                 &cfg.adam,
                 opt.lr,
                 opt.step,
                 &mut ac.actor.params.data,
-                &g_actor,
+                &ws.g_actor,
             );
             opt.critic.step(
                 &cfg.adam,
                 opt.lr,
                 opt.step,
                 &mut ac.critic.params_mut().data,
-                &g_critic,
+                &ws.g_critic,
             );
+            time.adam_s += lap();
 
             stats.policy_loss += (pol_loss / b as f64) as f32;
             stats.value_loss += value_loss;
             stats.entropy += entropy;
             stats.approx_kl += kl;
             stats.clip_fraction += clipped as f32 / b as f32;
-            stats.grad_norm += norm;
+            stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
             stats.actor_grad_norm += sq_a.sqrt() as f32;
             stats.critic_grad_norm += sq_c.sqrt() as f32;
             count += 1;
@@ -402,7 +550,9 @@ pub fn update(
     stats.grad_norm /= c;
     stats.actor_grad_norm /= c;
     stats.critic_grad_norm /= c;
+    stats.clipped_fraction = clipped_steps as f32 / c;
     stats.learning_rate = opt.lr;
     stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
+    stats.time = time;
     Ok(stats)
 }

@@ -37,8 +37,6 @@ pub struct ActOutput {
     pub actions: Vec<f32>,
     /// `log pi(a|s)`, `n`.
     pub log_probs: Vec<f32>,
-    /// Distorted values (`CVaR_eta(Z(s))`, or `V(s)` for the scalar critic), `n`.
-    pub values: Vec<f32>,
     /// Policy mean, `n x act_dim`.
     pub action_mean: Vec<f32>,
     /// Policy std, `n x act_dim`.

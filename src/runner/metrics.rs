@@ -54,6 +54,21 @@ impl EpisodeStats {
     }
 }
 
+/// Where the collection's wall time went (seconds per iteration).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CollectTimes {
+    /// PD control and `mj_step` (share of the parallel env pass).
+    pub physics_s: f64,
+    /// Observation, reward, risk, pushes (share of the parallel env pass).
+    pub task_s: f64,
+    /// Counters, curriculum and auto-resets.
+    pub reset_s: f64,
+    /// Policy forward passes and action sampling.
+    pub inference_s: f64,
+    /// Rollout storage and everything else.
+    pub storage_s: f64,
+}
+
 /// One CSV row.
 pub struct IterationRow<'a> {
     pub iteration: usize,
@@ -63,6 +78,7 @@ pub struct IterationRow<'a> {
     pub iteration_env_steps: u64,
     pub collect_s: f64,
     pub learn_s: f64,
+    pub collect_times: CollectTimes,
     pub episodes: &'a EpisodeStats,
     pub update: &'a UpdateStats,
     pub terrain_level: f64,
@@ -70,6 +86,26 @@ pub struct IterationRow<'a> {
     pub risk_fired: &'a [u64; NUM_RISK_TERMS],
     pub instabilities: u64,
 }
+
+/// Columns appended after the risk counters: gradient norms and where the
+/// iteration's time went (seconds).
+const TIMING_COLUMNS: [&str; 15] = [
+    "actor_grad_norm",
+    "critic_grad_norm",
+    "clipped_fraction",
+    "collect_physics_s",
+    "collect_task_s",
+    "collect_reset_s",
+    "collect_inference_s",
+    "collect_storage_s",
+    "learn_targets_s",
+    "learn_gather_s",
+    "learn_forward_s",
+    "learn_loss_s",
+    "learn_backward_s",
+    "learn_clip_s",
+    "learn_adam_s",
+];
 
 pub struct MetricsCsv {
     out: BufWriter<File>,
@@ -105,6 +141,7 @@ fn header() -> String {
     cols.extend(REWARD_TERM_NAMES.iter().map(|n| format!("rew_{n}")));
     cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_exceeded_{n}")));
     cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_fired_{n}")));
+    cols.extend(TIMING_COLUMNS.iter().map(|n| n.to_string()));
     cols.join(",")
 }
 
@@ -165,6 +202,27 @@ impl MetricsCsv {
         }
         for v in r.risk_exceeded.iter().chain(r.risk_fired) {
             row.push_str(&format!(",{v}"));
+        }
+        let (c, t) = (&r.collect_times, &u.time);
+        row.push_str(&format!(
+            ",{:.4},{:.4},{:.4}",
+            u.actor_grad_norm, u.critic_grad_norm, u.clipped_fraction
+        ));
+        for v in [
+            c.physics_s,
+            c.task_s,
+            c.reset_s,
+            c.inference_s,
+            c.storage_s,
+            t.targets_s,
+            t.gather_s,
+            t.forward_s,
+            t.loss_s,
+            t.backward_s,
+            t.clip_s,
+            t.adam_s,
+        ] {
+            row.push_str(&format!(",{v:.4}"));
         }
         writeln!(self.out, "{row}")?;
         self.out.flush()?;

@@ -11,12 +11,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::metrics::{EpisodeStats, IterationRow, MetricsCsv};
+use super::metrics::{CollectTimes, EpisodeStats, IterationRow, MetricsCsv};
 use super::policy_file::{load_policy, save_policy, Progress};
 use crate::config::TrainConfig;
 use crate::env::risk::NUM_RISK_TERMS;
 use crate::env::{build_scene, EpisodeSummary, VecEnv, ACT_DIM, OBS_DIM};
-use crate::learn::{Learner, Rollout, UpdateStats};
+use crate::learn::{Learner, Rollout, UpdateStats, UpdateTimes};
 
 /// Name of the rolling checkpoint in a run directory.
 pub const LATEST: &str = "latest.safetensors";
@@ -137,8 +137,11 @@ pub fn train(
         rollout.clear();
         let mut risk_exceeded = [0u64; NUM_RISK_TERMS];
         let mut risk_fired = [0u64; NUM_RISK_TERMS];
+        let mut inference_s = 0.0;
         for _ in 0..r.steps_per_env {
+            let ti = Instant::now();
             let out = learner.act(&obs, &mut rng);
+            inference_s += ti.elapsed().as_secs_f64();
             let b = envs.step(&out.actions);
             for k in 0..NUM_RISK_TERMS {
                 risk_exceeded[k] += b.risk_exceeded[k];
@@ -150,6 +153,19 @@ pub fn train(
         }
         rollout.set_last_obs(&obs)?;
         let collect_s = t0.elapsed().as_secs_f64();
+        let step_times = envs.take_times();
+        let collect_times = CollectTimes {
+            physics_s: step_times.physics_s,
+            task_s: step_times.task_s,
+            reset_s: step_times.reset_s,
+            inference_s,
+            storage_s: (collect_s
+                - inference_s
+                - step_times.physics_s
+                - step_times.task_s
+                - step_times.reset_s)
+                .max(0.0),
+        };
         // --- learning ---
         let t1 = Instant::now();
         let update: UpdateStats = learner.update(&rollout)?;
@@ -170,6 +186,7 @@ pub fn train(
             iteration_env_steps,
             collect_s,
             learn_s,
+            collect_times,
             episodes: &last_stats,
             update: &update,
             terrain_level: envs.mean_terrain_level(),
@@ -201,6 +218,7 @@ pub fn train(
         );
         if progress.iteration.is_multiple_of(r.log_interval) || progress.iteration == 1 {
             log_line(&bar, status.clone());
+            log_line(&bar, time_split(&collect_times, &update.time));
         }
         bar.set_message(status);
         episodes.clear();
@@ -239,6 +257,25 @@ fn save_both(
     save_policy(&numbered, learner, cfg, progress)?;
     save_policy(&dir.latest(), learner, cfg, progress)?;
     Ok(numbered)
+}
+
+/// One log line saying where the iteration's time went.
+fn time_split(c: &CollectTimes, l: &UpdateTimes) -> String {
+    format!(
+        "      time | collect: physics {:.3}s task {:.3}s reset {:.3}s inference {:.3}s storage {:.3}s | learn: targets {:.3}s gather {:.3}s forward {:.3}s loss {:.3}s backward {:.3}s clip {:.3}s adam {:.3}s",
+        c.physics_s,
+        c.task_s,
+        c.reset_s,
+        c.inference_s,
+        c.storage_s,
+        l.targets_s,
+        l.gather_s,
+        l.forward_s,
+        l.loss_s,
+        l.backward_s,
+        l.clip_s,
+        l.adam_s
+    )
 }
 
 /// Prints above the bar on a terminal, plainly otherwise (logs of background runs).
