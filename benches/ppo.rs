@@ -3,10 +3,12 @@
 //! of one mini-batch forward + backward through the same layer shapes.
 //! Throughput is reported in matmul FLOP/s (criterion's "elem/s" = FLOP/s).
 //!
-//! `cargo bench --no-default-features --bench ppo`
+//! `cargo bench --no-default-features --bench ppo`: first a table of old (gemm 0.15,
+//! AVX2) against new (gemm 0.19, AVX-512 at run time) kernels on 1 and 2 threads,
+//! then criterion's own measurement of each.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use rall::learn::mat::gemm;
+use rall::learn::mat::{self, gemm, Kernels};
 use rall::learn::{CriticKind, Learner, LearnerConfig, Rollout};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -123,51 +125,127 @@ impl GemmOnly {
     }
 }
 
+/// Mean seconds of `f` over `reps` runs after one warm-up.
+fn time_it(reps: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let t = Instant::now();
+    for _ in 0..reps {
+        f();
+    }
+    t.elapsed().as_secs_f64() / reps as f64
+}
+
+fn learner(critic: CriticKind) -> (Learner, Rollout, f64) {
+    let cfg = LearnerConfig {
+        critic,
+        ..LearnerConfig::default()
+    };
+    let learner = Learner::new(OBS, ACT, &cfg, 0).unwrap();
+    let r = rollout(&learner);
+    let flops = update_flops(&cfg);
+    (learner, r, flops)
+}
+
+/// Old (gemm 0.15, AVX2 on stable) and new (gemm 0.19, run-time AVX-512) kernels,
+/// on 1 and 2 threads, interleaved in one run so the ratios share the machine's state.
+fn summary() {
+    println!("CPU SIMD level for Kernels::Auto: {}", mat::simd_level());
+    if let Ok(critic) = std::env::var("PPO_BENCH_PROFILE") {
+        // only updates with the new kernels, for `perf record`
+        let critic = if critic == "scalar" {
+            CriticKind::Scalar
+        } else {
+            CriticKind::Iqn
+        };
+        let (mut l, r, _) = learner(critic);
+        for _ in 0..10 {
+            black_box(l.update(&r).unwrap());
+        }
+        std::process::exit(0);
+    }
+    let mut gemm_only = GemmOnly::new(ENVS * STEPS / 4);
+    let gflops = gemm_only.flops();
+    let mut rows = Vec::new();
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let (mut l, r, flops) = learner(critic);
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut t = [0.0; 2];
+            let mut g = [0.0; 2];
+            // two rounds, alternating kernels, keep each one's best
+            for _round in 0..2 {
+                for (i, k) in [Kernels::Legacy, Kernels::Auto].into_iter().enumerate() {
+                    mat::set_kernels(k);
+                    let dt = pool.install(|| time_it(2, || drop(black_box(l.update(&r).unwrap()))));
+                    let dg = pool.install(|| time_it(10, || gemm_only.run()));
+                    t[i] = if t[i] == 0.0 { dt } else { f64::min(t[i], dt) };
+                    g[i] = if g[i] == 0.0 { dg } else { f64::min(g[i], dg) };
+                }
+            }
+            mat::set_kernels(Kernels::Auto);
+            rows.push((critic, threads, t, g, flops));
+        }
+    }
+    println!("| critic | threads | update old (ms) | update new (ms) | new/old speed-up | update GFLOP/s old / new | plain GEMM GFLOP/s old / new |");
+    println!("|---|---|---|---|---|---|---|");
+    for (critic, threads, t, g, flops) in &rows {
+        println!(
+            "| {critic:?} | {threads} | {:.0} | {:.0} | {:.2}x | {:.0} / {:.0} | {:.0} / {:.0} |",
+            t[0] * 1e3,
+            t[1] * 1e3,
+            t[0] / t[1],
+            flops / t[0] / 1e9,
+            flops / t[1] / 1e9,
+            gflops / g[0] / 1e9,
+            gflops / g[1] / 1e9
+        );
+    }
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let (mut l, r, _) = learner(critic);
+        l.update(&r).unwrap();
+        let t = l.update(&r).unwrap().time;
+        println!(
+            "update phases ({critic:?}, new kernels, all threads): targets {:.0} ms, gather {:.0}, forward {:.0}, loss {:.0}, backward {:.0}, clip {:.0}, adam {:.0} (total {:.0} ms)",
+            t.targets_s * 1e3,
+            t.gather_s * 1e3,
+            t.forward_s * 1e3,
+            t.loss_s * 1e3,
+            t.backward_s * 1e3,
+            t.clip_s * 1e3,
+            t.adam_s * 1e3,
+            t.total_s() * 1e3
+        );
+    }
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let one = rows.iter().find(|r| r.0 == critic && r.1 == 1).unwrap();
+        let two = rows.iter().find(|r| r.0 == critic && r.1 == 2).unwrap();
+        println!(
+            "2-thread speed-up of the update ({critic:?}): old kernels {:.2}x, new kernels {:.2}x",
+            one.2[0] / two.2[0],
+            one.2[1] / two.2[1]
+        );
+    }
+}
+
 fn bench(c: &mut Criterion) {
+    summary();
     let mut g = c.benchmark_group("ppo");
     g.sample_size(10)
-        .measurement_time(Duration::from_secs(12))
+        .measurement_time(Duration::from_secs(8))
         .warm_up_time(Duration::from_secs(2));
-
-    let mut gemm_only = GemmOnly::new(ENVS * STEPS / 4);
-    let flops = gemm_only.flops();
-    let t = Instant::now();
-    for _ in 0..20 {
-        gemm_only.run();
-    }
-    let dt = t.elapsed().as_secs_f64() / 20.0;
-    println!(
-        "gemm-only mini-batch fwd+bwd (actor + critic shapes, batch 1536): {:.1} ms, {:.1} GFLOP/s",
-        dt * 1e3,
-        flops / dt / 1e9
-    );
-    g.throughput(Throughput::Elements(flops as u64));
-    g.bench_function("gemm_only_minibatch", |b| b.iter(|| gemm_only.run()));
-
     for critic in [CriticKind::Iqn, CriticKind::Scalar] {
-        let cfg = LearnerConfig {
-            critic,
-            ..LearnerConfig::default()
-        };
-        let mut learner = Learner::new(OBS, ACT, &cfg, 0).unwrap();
-        let r = rollout(&learner);
-        let flops = update_flops(&cfg);
-        learner.update(&r).unwrap();
-        let t = Instant::now();
-        for _ in 0..3 {
-            black_box(learner.update(&r).unwrap());
-        }
-        let dt = t.elapsed().as_secs_f64() / 3.0;
-        println!(
-            "update {critic:?}: {:.0} ms per update, {:.1} GFLOP/s ({:.1} GFLOP)",
-            dt * 1e3,
-            flops / dt / 1e9,
-            flops / 1e9
-        );
+        let (mut learner, r, flops) = learner(critic);
         g.throughput(Throughput::Elements(flops as u64));
-        g.bench_function(format!("update_{critic:?}").to_lowercase(), |b| {
-            b.iter(|| black_box(learner.update(&r).unwrap()))
-        });
+        for k in [Kernels::Legacy, Kernels::Auto] {
+            mat::set_kernels(k);
+            g.bench_function(format!("update_{critic:?}_{k:?}").to_lowercase(), |b| {
+                b.iter(|| black_box(learner.update(&r).unwrap()))
+            });
+        }
+        mat::set_kernels(Kernels::Auto);
     }
     g.finish();
 }

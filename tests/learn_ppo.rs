@@ -173,3 +173,50 @@ fn ppo_learns_with_scalar_critic() {
         "scalar critic: return {ret} after {iters} iterations"
     );
 }
+
+/// The adaptive learning rate reads KL(old || new): before any step (lr 0) the
+/// policy is the one that collected, so KL and the clipped fraction are ~0.
+#[test]
+fn kl_is_zero_when_the_policy_has_not_moved() {
+    use rall::learn::{LrSchedule, PpoConfig};
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let cfg = LearnerConfig {
+            critic,
+            ppo: PpoConfig {
+                learning_rate: 0.0,
+                schedule: LrSchedule::Fixed,
+                ..PpoConfig::default()
+            },
+            actor_hidden: vec![64, 32],
+            critic_hidden: vec![64, 32],
+            ..LearnerConfig::default()
+        };
+        let (envs, steps, obs_dim, act_dim) = (32, 8, 48, 12);
+        let mut learner = Learner::new(obs_dim, act_dim, &cfg, 3).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut r = Rollout::new(steps, envs, obs_dim, act_dim);
+        for _ in 0..steps {
+            let obs: Vec<f32> = (0..envs * obs_dim)
+                .map(|_| rng.gen_range(-1.0..1.0))
+                .collect();
+            let out = learner.act(&obs, &mut rng);
+            r.push(
+                &obs,
+                &out,
+                &vec![0.5; envs],
+                &vec![false; envs],
+                &vec![false; envs],
+                &[],
+            )
+            .unwrap();
+        }
+        r.set_last_obs(&vec![0.0; envs * obs_dim]).unwrap();
+        let stats = learner.update(&r).unwrap();
+        assert!(
+            stats.approx_kl.abs() < 1e-6,
+            "{critic:?}: kl {}",
+            stats.approx_kl
+        );
+        assert_eq!(stats.clip_fraction, 0.0, "{critic:?}");
+    }
+}

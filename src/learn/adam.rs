@@ -3,6 +3,7 @@
 //! moments and step count must be exported to checkpoints (dfdx's `Adam` keeps
 //! them private) and the networks are not dfdx modules (see `mat`).
 
+use super::mat::with_simd;
 use serde::{Deserialize, Serialize};
 
 /// Adam hyper-parameters (the learning rate lives in the PPO schedule).
@@ -56,17 +57,19 @@ impl AdamState {
         let bc2 = 1.0 - (cfg.beta2 as f64).powi(step as i32);
         let step_size = (lr as f64 / bc1) as f32;
         let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
-        let (b1, b2) = (cfg.beta1, cfg.beta2);
-        for (((p, g), m), v) in params
-            .iter_mut()
-            .zip(grads)
-            .zip(&mut self.m)
-            .zip(&mut self.v)
-        {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + cfg.eps);
-        }
+        let (b1, b2, eps) = (cfg.beta1, cfg.beta2, cfg.eps);
+        with_simd(|| {
+            for (((p, g), m), v) in params
+                .iter_mut()
+                .zip(grads)
+                .zip(&mut self.m)
+                .zip(&mut self.v)
+            {
+                *m = b1 * *m + (1.0 - b1) * g;
+                *v = b2 * *v + (1.0 - b2) * g * g;
+                *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
+            }
+        })
     }
 }
 

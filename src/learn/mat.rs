@@ -9,6 +9,7 @@
 //! them against finite differences (see `nets` tests).
 
 use rayon::prelude::*;
+use std::cell::Cell;
 use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Elements per rayon task for element-wise kernels.
@@ -26,6 +27,48 @@ pub enum Kernels {
 }
 
 static KERNELS: AtomicU8 = AtomicU8::new(0);
+
+thread_local! {
+    /// Set inside [`serial`]: kernels run on the calling thread only.
+    static SERIAL: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Runs `f` with every kernel of this module single-threaded on the calling
+/// thread: for callers that already split the work across threads (the PPO
+/// update runs one shard of each mini-batch per thread).
+pub fn serial<R>(f: impl FnOnce() -> R) -> R {
+    let was = SERIAL.with(|s| s.replace(true));
+    let out = f();
+    SERIAL.with(|s| s.set(was));
+    out
+}
+
+/// Whether the calling thread is inside [`serial`].
+pub fn is_serial() -> bool {
+    SERIAL.with(|s| s.get())
+}
+
+/// `f` over `CHUNK`-sized pieces of `x`, in parallel unless [`is_serial`].
+fn for_chunks(x: &mut [f32], f: impl Fn(&mut [f32]) + Sync + Send) {
+    if is_serial() {
+        x.chunks_mut(CHUNK).for_each(f);
+    } else {
+        x.par_chunks_mut(CHUNK).for_each(f);
+    }
+}
+
+/// `f` over matching `CHUNK`-sized pieces of `x` and `y`, in parallel unless [`is_serial`].
+fn for_chunk_pairs(x: &mut [f32], y: &[f32], f: impl Fn(&mut [f32], &[f32]) + Sync + Send) {
+    if is_serial() {
+        x.chunks_mut(CHUNK)
+            .zip(y.chunks(CHUNK))
+            .for_each(|(x, y)| f(x, y));
+    } else {
+        x.par_chunks_mut(CHUNK)
+            .zip(y.par_chunks(CHUNK))
+            .for_each(|(x, y)| f(x, y));
+    }
+}
 
 /// Selects the GEMM kernels for the whole process (benchmarks compare both).
 pub fn set_kernels(k: Kernels) {
@@ -57,6 +100,23 @@ pub fn simd_level() -> &'static str {
     {
         "native"
     }
+}
+
+/// Runs `f` compiled for the widest SIMD level the CPU offers (AVX-512, AVX2,
+/// else baseline), chosen at run time. `f` must be a plain loop (it is inlined
+/// into the feature-enabled frame, so LLVM vectorises it for that level).
+#[inline(always)]
+pub fn with_simd<R>(f: impl FnOnce() -> R) -> R {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if let Some(v4) = pulp::x86::V4::try_new() {
+            return v4.vectorize(f);
+        }
+        if let Some(v3) = pulp::x86::V3::try_new() {
+            return v3.vectorize(f);
+        }
+    }
+    f()
 }
 
 /// `c[m x n] = (accumulate ? c : 0) + op(a)[m x k] * op(b)[k x n]`, all row-major.
@@ -95,6 +155,7 @@ pub fn gemm(
     };
     let (c, a, b) = (c.as_mut_ptr(), a.as_ptr(), b.as_ptr());
     let n_rs = n as isize;
+    let serial = is_serial();
     // SAFETY: the asserts above bound every index the strides can reach:
     // a: max (m-1)*a_rs + (k-1)*a_cs < m*k, same for b and c; `c` is exclusive.
     // Both crates take the same arguments (dst, its column/row strides, read_dst,
@@ -120,7 +181,11 @@ pub fn gemm(
                 false,
                 false,
                 false,
-                gemm::Parallelism::Rayon(0),
+                if serial {
+                    gemm::Parallelism::None
+                } else {
+                    gemm::Parallelism::Rayon(0)
+                },
             ),
             Kernels::Legacy => gemm_legacy::gemm(
                 m,
@@ -141,7 +206,11 @@ pub fn gemm(
                 false,
                 false,
                 false,
-                gemm_legacy::Parallelism::Rayon(0),
+                if serial {
+                    gemm_legacy::Parallelism::None
+                } else {
+                    gemm_legacy::Parallelism::Rayon(0)
+                },
             ),
         }
     }
@@ -166,31 +235,46 @@ pub fn exp_nonpos(x: f32) -> f32 {
 
 /// In place `x <- elu(x) = x if x > 0 else exp(x) - 1`.
 pub fn elu_inplace(x: &mut [f32]) {
-    x.par_chunks_mut(CHUNK).for_each(|c| {
-        for v in c {
-            let z = *v;
-            let e = exp_nonpos(z) - 1.0;
-            *v = if z > 0.0 { z } else { e };
-        }
+    for_chunks(x, |c| {
+        with_simd(|| {
+            for v in c {
+                let z = *v;
+                let e = exp_nonpos(z) - 1.0;
+                *v = if z > 0.0 { z } else { e };
+            }
+        })
     });
 }
 
 /// Backward of ELU written in terms of its output `a`: `g <- g * (a > 0 ? 1 : a + 1)`.
 pub fn elu_backward_inplace(g: &mut [f32], a: &[f32]) {
-    g.par_chunks_mut(CHUNK)
-        .zip(a.par_chunks(CHUNK))
-        .for_each(|(g, a)| {
+    for_chunk_pairs(g, a, |g, a| {
+        with_simd(|| {
             for (g, &a) in g.iter_mut().zip(a) {
                 *g *= if a > 0.0 { 1.0 } else { a + 1.0 };
             }
-        });
+        })
+    });
+}
+
+/// `acc += x`, element-wise (summing per-thread gradients).
+pub fn add_assign(acc: &mut [f32], x: &[f32]) {
+    for_chunk_pairs(acc, x, |acc, x| {
+        with_simd(|| {
+            for (a, &x) in acc.iter_mut().zip(x) {
+                *a += x;
+            }
+        })
+    });
 }
 
 /// In place ReLU.
 pub fn relu_inplace(x: &mut [f32]) {
-    for v in x {
-        *v = v.max(0.0);
-    }
+    with_simd(|| {
+        for v in x {
+            *v = v.max(0.0);
+        }
+    })
 }
 
 /// `y[r, :] = bias` for every row (`y` is `rows x bias.len()`).
@@ -202,11 +286,13 @@ pub fn fill_rows(y: &mut [f32], bias: &[f32]) {
 
 /// `out[j] += sum_r x[r, j]` for `x` of `rows x out.len()`.
 pub fn add_col_sums(x: &[f32], out: &mut [f32]) {
-    for row in x.chunks_exact(out.len()) {
-        for (o, v) in out.iter_mut().zip(row) {
-            *o += v;
+    with_simd(|| {
+        for row in x.chunks_exact(out.len()) {
+            for (o, v) in out.iter_mut().zip(row) {
+                *o += v;
+            }
         }
-    }
+    })
 }
 
 #[cfg(test)]

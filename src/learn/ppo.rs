@@ -5,14 +5,16 @@
 
 use super::actor_critic::{ActorCritic, Critic, HALF_LN_2PI};
 use super::adam::{AdamConfig, AdamState};
+use super::mat::{add_assign, serial};
 use super::nets::{IqnCache, MlpCache};
 use super::risk::{midpoint_taus, quantile_huber_loss};
 use super::storage::{gae, next_values, quantile_targets, Rollout};
 use anyhow::Result;
-use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 /// Learning-rate schedule.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -179,23 +181,46 @@ pub struct Optimizer {
 #[derive(Clone, Debug, Default)]
 pub struct Workspace {
     idx: Vec<usize>,
+    mb: MiniBatch,
+    shards: Vec<Shard>,
+}
+
+/// One mini-batch gathered from the rollout (rows in shuffled order).
+#[derive(Clone, Debug, Default)]
+struct MiniBatch {
     obs: Vec<f32>,
     actions: Vec<f32>,
     old_mu: Vec<f32>,
     old_std: Vec<f32>,
     old_logp: Vec<f32>,
+    /// Normalised advantages.
     adv: Vec<f32>,
     vtarget: Vec<f32>,
+    /// IQN: the mini-batch's taus, shared by all its samples.
+    taus: Vec<f32>,
+}
+
+/// One thread's share of a mini-batch: a contiguous block of its rows, with
+/// its own forward caches and gradients (summed over shards before the clip).
+#[derive(Clone, Debug, Default)]
+struct Shard {
+    rows: std::ops::Range<usize>,
+    actor_cache: MlpCache,
+    scalar_cache: MlpCache,
+    iqn_cache: IqnCache,
     std: Vec<f32>,
     d_mu: Vec<f32>,
     d_log_std: Vec<f32>,
     d_value: Vec<f32>,
-    taus: Vec<f32>,
     g_actor: Vec<f32>,
     g_critic: Vec<f32>,
-    actor_cache: MlpCache,
-    scalar_cache: MlpCache,
-    iqn_cache: IqnCache,
+    /// Sums over the shard's rows (divided by the mini-batch size later).
+    kl: f64,
+    policy_loss: f64,
+    clipped: usize,
+    /// Already weighted by the shard's share of the mini-batch.
+    value_loss: f64,
+    time: UpdateTimes,
 }
 
 /// Per-transition training targets computed once per update.
@@ -224,7 +249,14 @@ fn scale(g: &mut [f32], s: f32) {
 }
 
 /// Clips the gradients as `mode` says; returns whether anything was scaled.
-fn clip_grads(mode: GradClip, max_norm: f32, g_actor: &mut [f32], g_critic: &mut [f32], sq_a: f64, sq_c: f64) -> bool {
+fn clip_grads(
+    mode: GradClip,
+    max_norm: f32,
+    g_actor: &mut [f32],
+    g_critic: &mut [f32],
+    sq_a: f64,
+    sq_c: f64,
+) -> bool {
     match mode {
         GradClip::Global => {
             let norm = (sq_a + sq_c).sqrt() as f32;
@@ -345,61 +377,71 @@ pub fn update(
     let mut stats = UpdateStats::default();
     let mut count = 0usize;
     let mut clipped_steps = 0usize;
-    ws.idx.clear();
-    ws.idx.extend(0..total);
-    ws.g_actor.resize(ac.actor.params.len(), 0.0);
-    ws.g_critic.resize(ac.critic.params().len(), 0.0);
+    let Workspace { idx, mb, shards } = ws;
+    idx.clear();
+    idx.extend(0..total);
+    // one shard per thread: each runs forward, loss and backward of its rows
+    // with single-threaded kernels (measured faster than splitting every GEMM)
+    shards.resize_with(rayon::current_num_threads().max(1), Shard::default);
     for _ in 0..cfg.num_learning_epochs {
-        ws.idx.shuffle(rng);
-        for mb in 0..n_mb {
-            let batch = &ws.idx[mb * total / n_mb..(mb + 1) * total / n_mb];
+        idx.shuffle(rng);
+        for k in 0..n_mb {
+            let batch = &idx[k * total / n_mb..(k + 1) * total / n_mb];
             let b = batch.len();
-            gather_into(&mut ws.obs, &r.obs, od, batch);
-            gather_into(&mut ws.actions, &r.actions, ad, batch);
-            gather_into(&mut ws.old_mu, &r.action_mean, ad, batch);
-            gather_into(&mut ws.old_std, &r.action_std, ad, batch);
-            gather_into(&mut ws.old_logp, &r.log_probs, 1, batch);
-            gather_into(&mut ws.adv, &tg.adv, 1, batch);
-            gather_into(&mut ws.vtarget, &tg.value_targets, vt_width, batch);
-            let adv = &mut ws.adv;
+            gather_into(&mut mb.obs, &r.obs, od, batch);
+            gather_into(&mut mb.actions, &r.actions, ad, batch);
+            gather_into(&mut mb.old_mu, &r.action_mean, ad, batch);
+            gather_into(&mut mb.old_std, &r.action_std, ad, batch);
+            gather_into(&mut mb.old_logp, &r.log_probs, 1, batch);
+            gather_into(&mut mb.adv, &tg.adv, 1, batch);
+            gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
+            let adv = &mut mb.adv;
             if cfg.normalize_advantage_per_mini_batch && b > 1 {
                 let mean = adv.iter().sum::<f32>() / b as f32;
                 let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
                 let inv = 1.0 / (var.sqrt() + 1e-8);
                 adv.iter_mut().for_each(|a| *a = (*a - mean) * inv);
             }
+            mb.taus.clear();
+            if matches!(ac.critic, Critic::Iqn(_)) {
+                mb.taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
+            }
             time.gather_s += lap();
 
-            // ---- forward ----
-            ac.actor.forward(&ws.obs, b, &mut ws.actor_cache);
-            match &ac.critic {
-                Critic::Iqn(c) => {
-                    ws.taus.clear();
-                    ws.taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
-                    c.forward(&ws.obs, b, &ws.taus, &mut ws.iqn_cache);
-                }
-                Critic::Scalar(c) => c.forward(&ws.obs, b, &mut ws.scalar_cache),
+            // ---- forward, losses, backward: one shard of rows per thread ----
+            let n_shards = shards.len().min(b);
+            for (s, shard) in shards.iter_mut().enumerate() {
+                shard.rows = s * b / n_shards..((s + 1) * b / n_shards).min(b);
             }
-            time.forward_s += lap();
-
-            // ---- losses and their output gradients ----
-            let mu = ws.actor_cache.output();
-            let log_std = ac.actor.log_std();
-            ws.std.clear();
-            ws.std.extend(log_std.iter().map(|l| l.exp()));
-            let std = &ws.std;
-            let sum_log_std: f32 = log_std.iter().sum();
-            let (actions, old_mu, old_std) = (&ws.actions, &ws.old_mu, &ws.old_std);
-
-            // KL(old || new) of diagonal Gaussians, the adaptive-lr signal
-            let mut kl = 0.0f64;
-            for i in 0..b * ad {
-                let (s_new, s_old) = (std[i % ad], old_std[i]);
-                let dm = old_mu[i] - mu[i];
-                kl += ((s_new / s_old).ln() + (s_old * s_old + dm * dm) / (2.0 * s_new * s_new)
-                    - 0.5) as f64;
+            let ac_ref = &*ac;
+            let mb_ref = &*mb;
+            shards
+                .par_iter_mut()
+                .for_each(|shard| serial(|| shard_pass(ac_ref, mb_ref, shard, b, cfg, ccfg)));
+            let (first, rest) = shards.split_at_mut(1);
+            let sh0 = &mut first[0];
+            for other in rest.iter().filter(|s| !s.rows.is_empty()) {
+                add_assign(&mut sh0.g_actor, &other.g_actor);
+                add_assign(&mut sh0.g_critic, &other.g_critic);
+                sh0.kl += other.kl;
+                sh0.policy_loss += other.policy_loss;
+                sh0.clipped += other.clipped;
+                sh0.value_loss += other.value_loss;
             }
-            let kl = (kl / b as f64) as f32;
+            // the slowest shard sets the wall time of each phase
+            let phase =
+                |f: fn(&UpdateTimes) -> f64| shards.iter().map(|s| f(&s.time)).fold(0.0, f64::max);
+            time.forward_s += phase(|t| t.forward_s);
+            time.loss_s += phase(|t| t.loss_s);
+            time.backward_s += phase(|t| t.backward_s);
+            lap();
+            let sh0 = &mut shards[0];
+            // entropy bonus: d(-c_e H)/d log_std = -c_e per dimension
+            let off = ac.actor.log_std_offset();
+            for g in &mut sh0.g_actor[off..off + ad] {
+                *g -= cfg.entropy_coef;
+            }
+            let kl = (sh0.kl / b as f64) as f32;
             if cfg.schedule == LrSchedule::Adaptive {
                 if kl > 2.0 * cfg.desired_kl {
                     opt.lr = (opt.lr / 1.5).max(cfg.min_lr);
@@ -408,109 +450,21 @@ pub fn update(
                 }
             }
 
-            // clipped surrogate: L = mean_b max(-A r, -A clip(r, 1-e, 1+e)), r = exp(logp - logp_old)
-            let d_mu = &mut ws.d_mu;
-            d_mu.clear();
-            d_mu.resize(b * ad, 0.0);
-            let d_log_std = &mut ws.d_log_std;
-            d_log_std.clear();
-            d_log_std.resize(ad, -cfg.entropy_coef); // d(-c_e H)/d log_std
-            let (mut pol_loss, mut clipped) = (0.0f64, 0usize);
-            for s in 0..b {
-                let row = s * ad..(s + 1) * ad;
-                let mut sq = 0.0;
-                for j in 0..ad {
-                    let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
-                    sq += z * z;
-                }
-                let logp = -0.5 * sq - sum_log_std - ad as f32 * HALF_LN_2PI;
-                // log-ratio capped so that a stale sample cannot overflow exp to inf
-                let ratio = (logp - ws.old_logp[s]).min(20.0).exp();
-                let a = ws.adv[s];
-                let unclipped = -a * ratio;
-                let clip = -a * ratio.clamp(1.0 - cfg.clip_param, 1.0 + cfg.clip_param);
-                pol_loss += unclipped.max(clip) as f64;
-                if (ratio - 1.0).abs() > cfg.clip_param {
-                    clipped += 1;
-                }
-                // d L_s / d logp: the unclipped branch carries the gradient when it is the max
-                let g = if unclipped >= clip {
-                    -a * ratio / b as f32
-                } else {
-                    0.0
-                };
-                if g != 0.0 {
-                    for j in 0..ad {
-                        let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
-                        d_mu[row.start + j] = g * z / std[j]; // dlogp/dmu = (a - mu) / std^2
-                        d_log_std[j] += g * (z * z - 1.0); // dlogp/dlog_std = z^2 - 1
-                    }
-                }
-            }
-            let entropy = sum_log_std + ad as f32 * (0.5 + HALF_LN_2PI);
-            let value_loss = match &ac.critic {
-                Critic::Iqn(_) => {
-                    let z = ws.iqn_cache.output();
-                    ws.d_value.clear();
-                    ws.d_value.resize(z.len(), 0.0);
-                    let loss =
-                        quantile_huber_loss(z, &ws.taus, &ws.vtarget, ccfg.kappa, &mut ws.d_value);
-                    scale(&mut ws.d_value, cfg.value_loss_coef);
-                    loss
-                }
-                Critic::Scalar(_) => {
-                    let v = ws.scalar_cache.output();
-                    let mut loss = 0.0;
-                    ws.d_value.clear();
-                    ws.d_value.extend(v.iter().zip(&ws.vtarget).map(|(v, t)| {
-                        loss += (t - v) * (t - v);
-                        cfg.value_loss_coef * 2.0 * (v - t) / b as f32
-                    }));
-                    loss / b as f32
-                }
-            };
-            time.loss_s += lap();
-
-            // ---- backward ----
-            ws.g_actor.fill(0.0);
-            ws.g_critic.fill(0.0);
-            ac.actor
-                .backward(&mut ws.g_actor, &ws.obs, b, &mut ws.actor_cache, &mut ws.d_mu);
-            let off = ac.actor.log_std_offset();
-            for (g, d) in ws.g_actor[off..off + ad].iter_mut().zip(&ws.d_log_std) {
-                *g += d;
-            }
-            match &ac.critic {
-                Critic::Iqn(c) => c.backward(
-                    &mut ws.g_critic,
-                    &ws.obs,
-                    b,
-                    &mut ws.iqn_cache,
-                    &ws.d_value,
-                ),
-                Critic::Scalar(c) => c.backward(
-                    &mut ws.g_critic,
-                    &ws.obs,
-                    b,
-                    &mut ws.scalar_cache,
-                    &mut ws.d_value,
-                ),
-            }
-            time.backward_s += lap();
-
             // ---- gradient-norm clip ----
-            let (sq_a, sq_c) = (sum_sq(&ws.g_actor), sum_sq(&ws.g_critic));
+            let (sq_a, sq_c) = (sum_sq(&sh0.g_actor), sum_sq(&sh0.g_critic));
             if clip_grads(
                 cfg.grad_clip,
                 cfg.max_grad_norm,
-                &mut ws.g_actor,
-                &mut ws.g_critic,
+                &mut sh0.g_actor,
+                &mut sh0.g_critic,
                 sq_a,
                 sq_c,
             ) {
                 clipped_steps += 1;
             }
             time.clip_s += lap();
+
+            let entropy = ac.actor.log_std().iter().sum::<f32>() + ad as f32 * (0.5 + HALF_LN_2PI);
 
             // ---- Adam ----
             opt.step += 1;
@@ -519,22 +473,22 @@ pub fn update(
                 opt.lr,
                 opt.step,
                 &mut ac.actor.params.data,
-                &ws.g_actor,
+                &sh0.g_actor,
             );
             opt.critic.step(
                 &cfg.adam,
                 opt.lr,
                 opt.step,
                 &mut ac.critic.params_mut().data,
-                &ws.g_critic,
+                &sh0.g_critic,
             );
             time.adam_s += lap();
 
-            stats.policy_loss += (pol_loss / b as f64) as f32;
-            stats.value_loss += value_loss;
+            stats.policy_loss += (sh0.policy_loss / b as f64) as f32;
+            stats.value_loss += sh0.value_loss as f32;
             stats.entropy += entropy;
             stats.approx_kl += kl;
-            stats.clip_fraction += clipped as f32 / b as f32;
+            stats.clip_fraction += sh0.clipped as f32 / b as f32;
             stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
             stats.actor_grad_norm += sq_a.sqrt() as f32;
             stats.critic_grad_norm += sq_c.sqrt() as f32;
@@ -555,4 +509,151 @@ pub fn update(
     stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
     stats.time = time;
     Ok(stats)
+}
+
+/// Forward, losses and backward of one shard's rows of the mini-batch (`b`
+/// rows in all). Per-sample gradients are scaled by `1 / b`, so summing the
+/// shards' gradients gives the mini-batch's. Resets and fills `shard`'s
+/// gradients, loss sums and phase times.
+fn shard_pass(
+    ac: &ActorCritic,
+    mb: &MiniBatch,
+    sh: &mut Shard,
+    b: usize,
+    cfg: &PpoConfig,
+    ccfg: &CriticLossConfig,
+) {
+    let mut clock = Instant::now();
+    let mut lap = || {
+        let now = Instant::now();
+        let dt = (now - clock).as_secs_f64();
+        clock = now;
+        dt
+    };
+    let (od, ad) = (ac.obs_dim(), ac.act_dim());
+    let rows = sh.rows.clone();
+    let n = rows.len();
+    sh.g_actor.clear();
+    sh.g_actor.resize(ac.actor.params.len(), 0.0);
+    sh.g_critic.clear();
+    sh.g_critic.resize(ac.critic.params().len(), 0.0);
+    (sh.kl, sh.policy_loss, sh.clipped, sh.value_loss) = (0.0, 0.0, 0, 0.0);
+    sh.time = UpdateTimes::default();
+    if n == 0 {
+        return;
+    }
+    let obs = &mb.obs[rows.start * od..rows.end * od];
+    let vt_width = mb.vtarget.len() / b;
+    let vtarget = &mb.vtarget[rows.start * vt_width..rows.end * vt_width];
+
+    // ---- forward ----
+    ac.actor.forward(obs, n, &mut sh.actor_cache);
+    match &ac.critic {
+        Critic::Iqn(c) => {
+            c.forward(obs, n, &mb.taus, &mut sh.iqn_cache);
+        }
+        Critic::Scalar(c) => c.forward(obs, n, &mut sh.scalar_cache),
+    }
+    sh.time.forward_s = lap();
+
+    // ---- losses and their output gradients ----
+    let mu = sh.actor_cache.output();
+    let log_std = ac.actor.log_std();
+    sh.std.clear();
+    sh.std.extend(log_std.iter().map(|l| l.exp()));
+    let std = &sh.std;
+    let sum_log_std: f32 = log_std.iter().sum();
+    let at = |w: usize| rows.start * w..rows.end * w;
+    let actions = &mb.actions[at(ad)];
+    let old_mu = &mb.old_mu[at(ad)];
+    let old_std = &mb.old_std[at(ad)];
+    let old_logp = &mb.old_logp[rows.clone()];
+    let adv = &mb.adv[rows.clone()];
+
+    // KL(old || new) of diagonal Gaussians, the adaptive-lr signal (summed here)
+    for i in 0..n * ad {
+        let (s_new, s_old) = (std[i % ad], old_std[i]);
+        let dm = old_mu[i] - mu[i];
+        sh.kl +=
+            ((s_new / s_old).ln() + (s_old * s_old + dm * dm) / (2.0 * s_new * s_new) - 0.5) as f64;
+    }
+
+    // clipped surrogate: L = mean_b max(-A r, -A clip(r, 1-e, 1+e)), r = exp(logp - logp_old)
+    sh.d_mu.clear();
+    sh.d_mu.resize(n * ad, 0.0);
+    sh.d_log_std.clear();
+    sh.d_log_std.resize(ad, 0.0);
+    for s in 0..n {
+        let row = s * ad..(s + 1) * ad;
+        let mut sq = 0.0;
+        for j in 0..ad {
+            let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
+            sq += z * z;
+        }
+        let logp = -0.5 * sq - sum_log_std - ad as f32 * HALF_LN_2PI;
+        // log-ratio capped so that a stale sample cannot overflow exp to inf
+        let ratio = (logp - old_logp[s]).min(20.0).exp();
+        let a = adv[s];
+        let unclipped = -a * ratio;
+        let clip = -a * ratio.clamp(1.0 - cfg.clip_param, 1.0 + cfg.clip_param);
+        sh.policy_loss += unclipped.max(clip) as f64;
+        if (ratio - 1.0).abs() > cfg.clip_param {
+            sh.clipped += 1;
+        }
+        // d L_s / d logp: the unclipped branch carries the gradient when it is the max
+        let g = if unclipped >= clip {
+            -a * ratio / b as f32
+        } else {
+            0.0
+        };
+        if g != 0.0 {
+            for j in 0..ad {
+                let z = (actions[row.start + j] - mu[row.start + j]) / std[j];
+                sh.d_mu[row.start + j] = g * z / std[j]; // dlogp/dmu = (a - mu) / std^2
+                sh.d_log_std[j] += g * (z * z - 1.0); // dlogp/dlog_std = z^2 - 1
+            }
+        }
+    }
+    let share = n as f32 / b as f32;
+    match &ac.critic {
+        Critic::Iqn(_) => {
+            let z = sh.iqn_cache.output();
+            sh.d_value.clear();
+            sh.d_value.resize(z.len(), 0.0);
+            // the loss averages over this shard's rows: rescale to the mini-batch
+            let loss = quantile_huber_loss(z, &mb.taus, vtarget, ccfg.kappa, &mut sh.d_value);
+            scale(&mut sh.d_value, cfg.value_loss_coef * share);
+            sh.value_loss = (loss * share) as f64;
+        }
+        Critic::Scalar(_) => {
+            let v = sh.scalar_cache.output();
+            let mut loss = 0.0f64;
+            sh.d_value.clear();
+            sh.d_value.extend(v.iter().zip(vtarget).map(|(v, t)| {
+                loss += ((t - v) * (t - v)) as f64;
+                cfg.value_loss_coef * 2.0 * (v - t) / b as f32
+            }));
+            sh.value_loss = loss / b as f64;
+        }
+    }
+    sh.time.loss_s = lap();
+
+    // ---- backward ----
+    ac.actor
+        .backward(&mut sh.g_actor, obs, n, &mut sh.actor_cache, &mut sh.d_mu);
+    let off = ac.actor.log_std_offset();
+    for (g, d) in sh.g_actor[off..off + ad].iter_mut().zip(&sh.d_log_std) {
+        *g += d;
+    }
+    match &ac.critic {
+        Critic::Iqn(c) => c.backward(&mut sh.g_critic, obs, n, &mut sh.iqn_cache, &sh.d_value),
+        Critic::Scalar(c) => c.backward(
+            &mut sh.g_critic,
+            obs,
+            n,
+            &mut sh.scalar_cache,
+            &mut sh.d_value,
+        ),
+    }
+    sh.time.backward_s = lap();
 }

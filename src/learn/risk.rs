@@ -5,6 +5,7 @@
 //! evaluate it on a fixed midpoint grid `tau_k = (k + 1/2) / K`, so the value the
 //! actor follows is deterministic: `V_beta ~= 1/K sum_k Z_{beta(tau_k)}(s)`.
 
+use super::mat::{is_serial, with_simd};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -101,6 +102,10 @@ fn rho_and_slope(tau: f32, delta: f32, kappa: f32) -> (f32, f32) {
     (w * c * (a - 0.5 * c), w * delta.max(-kappa).min(kappa))
 }
 
+/// f32 lanes of one AVX-512 register: accumulators per target row in
+/// [`quantile_huber_loss`] (also fills two AVX2 registers).
+const LANES: usize = 16;
+
 /// Critic loss (paper, eq. for L_critic) averaged over the batch:
 /// `1/B sum_b sum_i 1/N' sum_j rho^kappa_{tau_i}(T_bj - Z_bi)`.
 ///
@@ -120,19 +125,16 @@ pub fn quantile_huber_loss(
     let n_t = targets.len() / batch;
     assert!(n_t > 0 && targets.len() == batch * n_t);
     let scale = 1.0 / (batch as f32 * n_t as f32);
-    let loss: f64 = grad
-        .par_chunks_mut(n)
-        .zip(pred.par_chunks(n))
-        .zip(targets.par_chunks(n_t))
-        .map(|((g_row, z_row), t_row)| {
+    let row = |((g_row, z_row), t_row): ((&mut [f32], &[f32]), &[f32])| {
+        with_simd(|| {
             let mut loss = 0.0f32;
             for ((g, &z), &tau) in g_row.iter_mut().zip(z_row).zip(taus) {
-                // 8 independent accumulators so the loop vectorises (no fast-math)
-                let (mut l, mut d) = ([0.0f32; 8], [0.0f32; 8]);
-                let chunks = t_row.chunks_exact(8);
+                // LANES independent accumulators so the loop vectorises (no fast-math)
+                let (mut l, mut d) = ([0.0f32; LANES], [0.0f32; LANES]);
+                let chunks = t_row.chunks_exact(LANES);
                 let rest = chunks.remainder();
                 for c in chunks {
-                    for k in 0..8 {
+                    for k in 0..LANES {
                         let (lk, dk) = rho_and_slope(tau, c[k] - z, kappa);
                         l[k] += lk;
                         d[k] += dk;
@@ -148,7 +150,20 @@ pub fn quantile_huber_loss(
             }
             loss as f64
         })
-        .sum();
+    };
+    let loss: f64 = if is_serial() {
+        grad.chunks_mut(n)
+            .zip(pred.chunks(n))
+            .zip(targets.chunks(n_t))
+            .map(row)
+            .sum()
+    } else {
+        grad.par_chunks_mut(n)
+            .zip(pred.par_chunks(n))
+            .zip(targets.par_chunks(n_t))
+            .map(row)
+            .sum()
+    };
     (loss * scale as f64) as f32
 }
 
