@@ -26,7 +26,7 @@ fn tiny_policy(dir: &Path, name: &str, eta: f32, seed: u64) -> NamedPolicy {
     c.env.robot_mjcf = robot_mjcf();
     c.env.terrain.kind = TerrainKind::Flat;
     c.learner.critic = CriticKind::Iqn;
-    c.learner.cvar_eta = eta;
+    c.learner.cvar_eta = Some(eta);
     c.learner.actor_hidden = vec![32, 32];
     c.learner.critic_hidden = vec![32, 32];
     c.learner.num_taus = 8;

@@ -183,6 +183,30 @@ fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
     assert!(e.contains("num_envs"), "{e}");
     let e = err("[env.commands]\nvx_mps = [1.0, -1.0]\n");
     assert!(e.contains("commands.vx_mps"), "{e}");
+    // contradictory pairs are refused naming both keys
+    let e = err("[learner]\ncvar_eta = 0.5\ndistortion = { kind = \"wang\", lambda = -0.75 }\n");
+    assert!(e.contains("cvar_eta") && e.contains("distortion"), "{e}");
+    let e = err("[learner]\ncritic = \"scalar\"\ncvar_eta = 0.5\n");
+    assert!(e.contains("scalar") && e.contains("cvar_eta"), "{e}");
+    let e = err("[learner]\ncritic = \"scalar\"\ndistortion = { kind = \"cvar\", eta = 0.5 }\n");
+    assert!(e.contains("scalar") && e.contains("distortion"), "{e}");
+}
+
+#[test]
+fn the_risk_setting_is_the_one_the_actor_follows() {
+    use rall::learn::Distortion;
+    let cfg = |text: &str| TrainConfig::from_toml_str(text).unwrap().learner;
+    assert_eq!(cfg("").distortion(), Distortion::Cvar { eta: 0.5 });
+    assert_eq!(
+        cfg("[learner]\ncvar_eta = 1.0\n").distortion(),
+        Distortion::Cvar { eta: 1.0 }
+    );
+    let wang = cfg("[learner]\ndistortion = { kind = \"wang\", lambda = -0.75 }\n");
+    assert_eq!(wang.distortion(), Distortion::Wang { lambda: -0.75 });
+    assert_eq!(wang.risk_label(), "wang-0.75");
+    let scalar = cfg("[learner]\ncritic = \"scalar\"\n");
+    assert_eq!(scalar.distortion(), Distortion::Cvar { eta: 1.0 });
+    assert_eq!(scalar.risk_label(), "scalar");
 }
 
 #[test]
@@ -195,4 +219,50 @@ fn tracking_evaluation_of_an_untrained_policy_gives_bounded_scores() {
     assert!((0.0..=1.0).contains(&r.lin_vel_score) && (0.0..=1.0).contains(&r.yaw_rate_score));
     assert!((0.0..=1.0).contains(&r.fall_rate));
     assert!(r.mean_episode_length_steps > 0.0 && r.mean_episode_length_steps <= 25.0);
+}
+
+/// A run killed after its checkpoint at iteration 2 but before the next (the
+/// metrics already hold iteration 3 and half a row, `latest` is broken, a temp
+/// file is left): the resume starts from the newest readable checkpoint, cuts
+/// the metrics back to it, and removes the temp file.
+#[test]
+fn resume_after_a_crash_continues_from_the_newest_readable_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut cfg = tiny_config(CriticKind::Scalar);
+    cfg.runner.iterations = 3;
+    train(cfg, &run, false, no_stop(), &mut ()).unwrap();
+    // simulate the crash: checkpoint 3 and latest lost, a cut row, a temp file
+    std::fs::remove_file(run.join("checkpoints/model_000003.safetensors")).unwrap();
+    std::fs::write(run.join(LATEST), b"garbage").unwrap();
+    std::fs::write(
+        run.join("checkpoints/model_000004.safetensors.tmp"),
+        b"half",
+    )
+    .unwrap();
+    let mut csv = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    csv.push_str("4,1.0,2");
+    std::fs::write(run.join("metrics.csv"), csv).unwrap();
+
+    let mut more = tiny_config(CriticKind::Scalar);
+    more.runner.iterations = 4;
+    let s = train(more, &run, true, no_stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 4);
+    let rows = metric_rows(&run);
+    let iterations: Vec<&str> = rows.iter().map(|r| r[0].as_str()).collect();
+    assert_eq!(iterations, ["1", "2", "3", "4"], "one row per iteration");
+    let width = rows[0].len();
+    assert!(rows.iter().all(|r| r.len() == width), "no glued rows");
+    let wall: Vec<f64> = rows.iter().map(|r| r[1].parse().unwrap()).collect();
+    assert!(
+        wall.windows(2).all(|w| w[1] >= w[0]),
+        "wall time never goes back: {wall:?}"
+    );
+    assert!(!run
+        .join("checkpoints/model_000004.safetensors.tmp")
+        .exists());
+    assert_eq!(
+        load_policy(&run.join(LATEST)).unwrap().progress.iteration,
+        4
+    );
 }

@@ -12,7 +12,7 @@ use crate::eval::{
     GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
     ScenarioParams, TtfOptions,
 };
-use crate::learn::CriticKind;
+use crate::learn::{CriticKind, Distortion};
 use crate::runner::load_policy;
 
 #[derive(Debug, Args)]
@@ -407,9 +407,11 @@ fn race(a: &RaceArgs) -> Result<()> {
             if rp.learner.config().critic != CriticKind::Iqn {
                 eprintln!("warning: the RISKY policy {risky} has a scalar critic: its IQR is 0, the meta controller never switches");
             }
-            let eta = rp.learner.config().cvar_eta;
-            if eta < 1.0 && rp.learner.config().distortion.is_none() {
-                eprintln!("note: the RISKY policy {risky} follows CVaR_{eta} (the paper's RISKY is CVaR_1)");
+            let risk = rp.learner.config().distortion();
+            if risk != (Distortion::Cvar { eta: 1.0 }) {
+                eprintln!(
+                    "note: the RISKY policy {risky} follows {risk:?} (the paper's RISKY is CVaR_1)"
+                );
             }
             Some(MetaConfig {
                 name: m.name,

@@ -9,24 +9,25 @@ use clap::Args;
 
 use crate::config::TrainConfig;
 use crate::learn::CriticKind;
-use crate::runner::{train, LATEST};
+use crate::runner::{train, RunDir, LATEST};
 use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Run configuration (TOML with [env], [learner], [runner]); see configs/.
-    #[arg(long, default_value = "configs/flat.toml")]
-    pub config: PathBuf,
+    /// [default: configs/flat.toml]. A resumed run keeps the config it was started with.
+    #[arg(long, conflicts_with = "resume")]
+    pub config: Option<PathBuf>,
     /// CVaR level eta of the actor's objective (0.5 = RALL, 1 = risk neutral).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub cvar_eta: Option<f32>,
     /// Critic: iqn (value distribution) or scalar (risk-neutral baseline).
-    #[arg(long, value_parser = parse_critic)]
+    #[arg(long, value_parser = parse_critic, conflicts_with = "resume")]
     pub critic: Option<CriticKind>,
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub seed: Option<u64>,
     /// Parallel environments.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub envs: Option<usize>,
     /// Env worker threads (0 = all cores).
     #[arg(long)]
@@ -70,69 +71,61 @@ fn parse_critic(s: &str) -> Result<CriticKind, String> {
 }
 
 pub fn run(args: &TrainArgs) -> Result<()> {
-    let mut cfg = TrainConfig::from_toml_file(&args.config)?;
-    if let Some(eta) = args.cvar_eta {
-        cfg.learner.cvar_eta = eta;
-    }
-    if let Some(c) = args.critic {
-        cfg.learner.critic = c;
-    }
-    if let Some(s) = args.seed {
-        cfg.runner.seed = s;
-    }
-    if let Some(n) = args.envs {
-        cfg.runner.num_envs = n;
-    }
-    if let Some(t) = args.threads {
-        cfg.runner.threads = t;
-    }
-    if let Some(k) = args.iterations {
-        cfg.runner.iterations = k;
-    }
-    if let Some(k) = args.save_interval {
-        cfg.runner.save_interval = k;
-    }
-    cfg.validate().context("after command-line overrides")?;
-    let (run_dir, resume) = match (&args.resume, &args.run_dir) {
+    let (cfg, run_dir, resume) = match (&args.resume, &args.run_dir) {
         (Some(dir), _) => {
-            if !dir.join(LATEST).exists() {
-                bail!("cannot resume: {} has no {LATEST}", dir.display());
-            }
-            (dir.clone(), true)
+            // what the run was started with; only runner settings may change
+            let (_, loaded) = RunDir { root: dir.clone() }
+                .resume_point()
+                .with_context(|| format!("cannot resume {}", dir.display()))?;
+            let mut cfg = loaded.config;
+            apply_runner_overrides(&mut cfg, args);
+            cfg.validate().context("after command-line overrides")?;
+            (cfg, dir.clone(), true)
         }
-        (None, Some(dir)) => (dir.clone(), false),
-        (None, None) => (default_run_dir(&args.config, &cfg), false),
+        (None, run_dir) => {
+            let config = args
+                .config
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("configs/flat.toml"));
+            let mut cfg = TrainConfig::from_toml_file(&config)?;
+            apply_run_overrides(&mut cfg, args);
+            apply_runner_overrides(&mut cfg, args);
+            cfg.validate().context("after command-line overrides")?;
+            let run_dir = run_dir
+                .clone()
+                .unwrap_or_else(|| default_run_dir(&config, &cfg));
+            if run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists() {
+                bail!(
+                    "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
+                    run_dir.display(),
+                    run_dir.display()
+                );
+            }
+            (cfg, run_dir, false)
+        }
     };
-    if !resume && run_dir.join(LATEST).exists() {
-        bail!(
-            "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
-            run_dir.display(),
-            run_dir.display()
-        );
-    }
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
+        let first = std::sync::OnceLock::new();
+        // SIGINT, SIGTERM (what schedulers send) and SIGHUP (ctrlc's `termination`).
         ctrlc::set_handler(move || {
+            let t0 = *first.get_or_init(std::time::Instant::now);
+            // A second signal within a second is the same request delivered twice
+            // (GNU timeout signals the child and then its process group).
             if stop.swap(true, Ordering::SeqCst) {
-                eprintln!("second Ctrl-C: exiting without a checkpoint");
-                std::process::exit(130);
+                if t0.elapsed() >= std::time::Duration::from_secs(1) {
+                    eprintln!("second interrupt: exiting without a checkpoint");
+                    std::process::exit(130);
+                }
+                return;
             }
             eprintln!(
-                "Ctrl-C: finishing this iteration and writing a checkpoint (Ctrl-C again to abort)"
+                "interrupt (SIGINT/SIGTERM/SIGHUP): finishing this iteration and writing a checkpoint (interrupt again to abort)"
             );
         })
-        .context("installing the Ctrl-C handler")?;
+        .context("installing the interrupt handler")?;
     }
-    println!(
-        "training {} envs x {} steps, critic {:?}, eta {}, seed {} -> {}",
-        cfg.runner.num_envs,
-        cfg.runner.steps_per_env,
-        cfg.learner.critic,
-        cfg.learner.cvar_eta,
-        cfg.runner.seed,
-        run_dir.display()
-    );
     let target = RerunTarget::from_flags(
         args.rerun_save.as_deref(),
         args.rerun_spawn,
@@ -179,14 +172,50 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     Ok(())
 }
 
+/// Overrides that define a new run (refused with `--resume` by clap).
+fn apply_run_overrides(cfg: &mut TrainConfig, args: &TrainArgs) {
+    if let Some(eta) = args.cvar_eta {
+        cfg.learner.cvar_eta = Some(eta);
+    }
+    if let Some(c) = args.critic {
+        cfg.learner.critic = c;
+        if c == CriticKind::Scalar && args.cvar_eta.is_none() {
+            // the scalar critic has no distribution to distort: the config's
+            // risk setting no longer applies (an explicit --cvar-eta is still refused)
+            cfg.learner.cvar_eta = None;
+            cfg.learner.distortion = None;
+        }
+    }
+    if let Some(s) = args.seed {
+        cfg.runner.seed = s;
+    }
+    if let Some(n) = args.envs {
+        cfg.runner.num_envs = n;
+    }
+}
+
+/// Runner settings that do not change what is learned (also applied on resume).
+fn apply_runner_overrides(cfg: &mut TrainConfig, args: &TrainArgs) {
+    if let Some(t) = args.threads {
+        cfg.runner.threads = t;
+    }
+    if let Some(k) = args.iterations {
+        cfg.runner.iterations = k;
+    }
+    if let Some(k) = args.save_interval {
+        cfg.runner.save_interval = k;
+    }
+}
+
 fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {
     let name = config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
     let critic = match cfg.learner.critic {
-        CriticKind::Iqn => "iqn",
-        CriticKind::Scalar => "scalar",
+        CriticKind::Iqn => "iqn-",
+        CriticKind::Scalar => "",
     };
     PathBuf::from(&cfg.runner.runs_dir).join(format!(
-        "{name}-{critic}-eta{}-s{}",
-        cfg.learner.cvar_eta, cfg.runner.seed
+        "{name}-{critic}{}-s{}",
+        cfg.learner.risk_label(),
+        cfg.runner.seed
     ))
 }

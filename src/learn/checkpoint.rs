@@ -50,7 +50,11 @@ pub fn save_checkpoint(
         }
         Ok(())
     };
-    write().with_context(|| format!("writing checkpoint {}", path.display()))
+    write().with_context(|| {
+        // a failed write must not leave its temp file filling the disk
+        let _ = std::fs::remove_file(&tmp);
+        format!("writing checkpoint {}", path.display())
+    })
 }
 
 /// Reads a checkpoint written by [`save_checkpoint`]: tensors (in file order) and

@@ -22,6 +22,9 @@ pub enum CriticKind {
     Scalar,
 }
 
+/// RALL's CVaR level (the paper: eta 0.5).
+pub const DEFAULT_CVAR_ETA: f32 = 0.5;
+
 /// All learner hyper-parameters; `Default` = the paper / rsl_rl.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -29,8 +32,11 @@ pub struct LearnerConfig {
     pub ppo: PpoConfig,
     pub critic: CriticKind,
     /// CVaR level eta in (0, 1]; 0.5 = RALL, 1.0 = risk neutral (IQN critic only).
-    pub cvar_eta: f32,
-    /// Another distortion (e.g. Wang); overrides `cvar_eta` when set.
+    /// Unset: [`DEFAULT_CVAR_ETA`] unless `distortion` is set; setting both is refused.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cvar_eta: Option<f32>,
+    /// Another distortion (e.g. Wang) instead of `cvar_eta` (IQN critic only).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub distortion: Option<Distortion>,
     /// Actor hidden sizes (ELU).
     pub actor_hidden: Vec<usize>,
@@ -57,7 +63,7 @@ impl Default for LearnerConfig {
         LearnerConfig {
             ppo: PpoConfig::default(),
             critic: CriticKind::Iqn,
-            cvar_eta: 0.5,
+            cvar_eta: None,
             distortion: None,
             actor_hidden: vec![512, 256, 128],
             critic_hidden: vec![512, 256, 128],
@@ -73,13 +79,52 @@ impl Default for LearnerConfig {
 }
 
 impl LearnerConfig {
-    /// The distortion the actor follows (`distortion`, else `CVaR_cvar_eta`).
+    /// The distortion the actor follows: `distortion`, else `CVaR_cvar_eta`
+    /// (`cvar_eta` defaults to [`DEFAULT_CVAR_ETA`]). The scalar critic has no
+    /// distribution: it follows `V(s)`, i.e. `CVaR_1`.
     pub fn distortion(&self) -> Distortion {
-        self.distortion
-            .unwrap_or(Distortion::Cvar { eta: self.cvar_eta })
+        match (self.critic, self.distortion) {
+            (CriticKind::Scalar, _) => Distortion::Cvar { eta: 1.0 },
+            (CriticKind::Iqn, Some(d)) => d,
+            (CriticKind::Iqn, None) => Distortion::Cvar {
+                eta: self.cvar_eta.unwrap_or(DEFAULT_CVAR_ETA),
+            },
+        }
+    }
+
+    /// Short name of the risk measure, for run names and tables:
+    /// `eta0.5`, `wang-0.75`, `scalar`.
+    pub fn risk_label(&self) -> String {
+        match self.distortion() {
+            _ if self.critic == CriticKind::Scalar => "scalar".into(),
+            Distortion::Cvar { eta } => format!("eta{eta}"),
+            Distortion::Wang { lambda } => format!("wang{lambda}"),
+        }
     }
 
     pub fn validate(&self) -> Result<()> {
+        if let (Some(eta), Some(d)) = (self.cvar_eta, self.distortion) {
+            bail!(
+                "learner.cvar_eta ({eta}) and learner.distortion ({d:?}) are both set: the actor follows one distortion; keep one of the two keys"
+            );
+        }
+        if self.critic == CriticKind::Scalar {
+            if let Some(d) = self.distortion {
+                bail!(
+                    "learner.critic = \"scalar\" has no value distribution, so learner.distortion ({d:?}) would be ignored: remove it or use critic = \"iqn\""
+                );
+            }
+            if let Some(eta) = self.cvar_eta.filter(|&e| e != 1.0) {
+                bail!(
+                    "learner.critic = \"scalar\" follows V(s) (CVaR_1), so learner.cvar_eta = {eta} would be ignored: remove it or use critic = \"iqn\""
+                );
+            }
+        }
+        if let Some(eta) = self.cvar_eta {
+            Distortion::Cvar { eta }
+                .validate()
+                .map_err(|e| anyhow::anyhow!("learner.cvar_eta: {e}"))?;
+        }
         self.distortion().validate()?;
         ensure!(
             !self.critic_hidden.is_empty(),

@@ -657,3 +657,48 @@ fn shard_pass(
     }
     sh.time.backward_s = lap();
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn norm(g: &[f32]) -> f64 {
+        sum_sq(g).sqrt()
+    }
+
+    #[test]
+    fn global_clip_scales_both_networks_by_one_factor() {
+        let (mut a, mut c) = (vec![0.3f32, 0.4], vec![3.0f32, 4.0]); // norms 0.5 and 5
+        let (sa, sc) = (sum_sq(&a), sum_sq(&c));
+        assert!(clip_grads(GradClip::Global, 1.0, &mut a, &mut c, sa, sc));
+        let total = (norm(&a).powi(2) + norm(&c).powi(2)).sqrt();
+        assert!((total - 1.0).abs() < 1e-5, "{total}");
+        assert!((norm(&a) / norm(&c) - 0.1).abs() < 1e-6); // ratio kept
+    }
+
+    #[test]
+    fn per_network_clip_leaves_a_small_actor_gradient_alone() {
+        let (mut a, mut c) = (vec![0.3f32, 0.4], vec![3.0f32, 4.0]);
+        let (sa, sc) = (sum_sq(&a), sum_sq(&c));
+        assert!(clip_grads(
+            GradClip::PerNetwork,
+            1.0,
+            &mut a,
+            &mut c,
+            sa,
+            sc
+        ));
+        assert_eq!(a, vec![0.3, 0.4]);
+        assert!((norm(&c) - 1.0).abs() < 1e-5);
+        let (mut a, mut c) = (vec![0.3f32], vec![0.4f32]);
+        let (sa, sc) = (sum_sq(&a), sum_sq(&c));
+        assert!(!clip_grads(
+            GradClip::PerNetwork,
+            1.0,
+            &mut a,
+            &mut c,
+            sa,
+            sc
+        ));
+    }
+}

@@ -146,6 +146,43 @@ fn header() -> String {
 }
 
 impl MetricsCsv {
+    /// Opens the metrics of a run resumed at `iteration`: rows after it (written
+    /// after the checkpoint the run resumes from), a row cut short by a full disk
+    /// or a kill, and rows of another column layout are dropped, atomically
+    /// (temp file + rename), then the file is opened for appending.
+    pub fn open_resumed(path: &Path, iteration: usize) -> Result<MetricsCsv> {
+        if path.exists() {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let head = header();
+            let width = head.split(',').count();
+            let mut kept = String::with_capacity(text.len());
+            kept.push_str(&head);
+            kept.push('\n');
+            // only complete lines (a cut last line has no newline)
+            let complete = text.rsplit_once('\n').map_or("", |(c, _)| c);
+            for line in complete.lines().skip(1) {
+                let it = line.split(',').next().and_then(|v| v.parse::<usize>().ok());
+                if line.split(',').count() == width && it.is_some_and(|it| it <= iteration) {
+                    kept.push_str(line);
+                    kept.push('\n');
+                }
+            }
+            let tmp = path.with_extension("csv.tmp");
+            let write = || -> std::io::Result<()> {
+                let mut f = File::create(&tmp)?;
+                f.write_all(kept.as_bytes())?;
+                f.sync_all()?;
+                std::fs::rename(&tmp, path)
+            };
+            if let Err(e) = write() {
+                let _ = std::fs::remove_file(&tmp);
+                return Err(e).with_context(|| format!("rewriting {}", path.display()));
+            }
+        }
+        Self::open(path)
+    }
+
     /// Opens `path` for appending (a resumed run keeps its history), writing the header if new.
     pub fn open(path: &Path) -> Result<MetricsCsv> {
         let is_new = !path.exists()
@@ -224,8 +261,8 @@ impl MetricsCsv {
         ] {
             row.push_str(&format!(",{v:.4}"));
         }
-        writeln!(self.out, "{row}")?;
-        self.out.flush()?;
+        writeln!(self.out, "{row}").context("writing metrics.csv")?;
+        self.out.flush().context("writing metrics.csv")?;
         Ok(())
     }
 }

@@ -38,6 +38,69 @@ impl RunDir {
     pub fn metrics(&self) -> PathBuf {
         self.root.join("metrics.csv")
     }
+
+    /// Removes temp files a killed or failed write left behind.
+    fn remove_temp_files(&self) {
+        for d in [self.root.clone(), self.root.join("checkpoints")] {
+            let Ok(entries) = std::fs::read_dir(&d) else {
+                continue;
+            };
+            for e in entries.flatten() {
+                if e.path().extension().is_some_and(|x| x == "tmp") {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+    }
+
+    /// Numbered checkpoints, newest first.
+    fn numbered_checkpoints(&self) -> Vec<PathBuf> {
+        let mut found: Vec<(usize, PathBuf)> = std::fs::read_dir(self.root.join("checkpoints"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| {
+                let name = e.file_name().into_string().ok()?;
+                let it = name
+                    .strip_prefix("model_")?
+                    .strip_suffix(".safetensors")?
+                    .parse()
+                    .ok()?;
+                Some((it, e.path()))
+            })
+            .collect();
+        found.sort_by(|a, b| b.0.cmp(&a.0));
+        found.into_iter().map(|(_, p)| p).collect()
+    }
+
+    /// The checkpoint to resume from: `latest`, or when it is missing or
+    /// unreadable the newest numbered checkpoint that loads.
+    pub fn resume_point(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
+        let latest = self.latest();
+        let latest_err = match load_policy(&latest) {
+            Ok(p) => return Ok((latest, p)),
+            Err(e) => e,
+        };
+        for path in self.numbered_checkpoints() {
+            match load_policy(&path) {
+                Ok(p) => {
+                    eprintln!(
+                        "note: {} is unusable ({latest_err:#}); resuming from {}",
+                        latest.display(),
+                        path.display()
+                    );
+                    return Ok((path, p));
+                }
+                Err(e) => eprintln!("note: skipping {}: {e:#}", path.display()),
+            }
+        }
+        Err(latest_err).with_context(|| {
+            format!(
+                "cannot resume {}: no readable checkpoint (latest or checkpoints/model_*)",
+                self.root.display()
+            )
+        })
+    }
 }
 
 /// Called once per iteration with the row just logged (for the rerun logger, tests).
@@ -73,20 +136,37 @@ pub fn train(
     };
     std::fs::create_dir_all(&dir.root)
         .with_context(|| format!("creating run directory {}", dir.root.display()))?;
+    dir.remove_temp_files();
     let (cfg, mut learner, mut progress) = if resume {
-        let latest = dir.latest();
-        let loaded =
-            load_policy(&latest).with_context(|| format!("resuming from {}", latest.display()))?;
+        let (path, loaded) = dir.resume_point()?;
         let mut stored = loaded.config;
+        // runner settings that do not change what is learned may differ on resume
         stored.runner.iterations = cfg.runner.iterations;
+        stored.runner.threads = cfg.runner.threads;
+        stored.runner.save_interval = cfg.runner.save_interval;
+        stored.runner.log_interval = cfg.runner.log_interval;
         println!(
-            "resuming {} at iteration {} (lr {:.2e})",
+            "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps, {}, seed {}",
             dir.root.display(),
+            path.display(),
             loaded.progress.iteration,
-            loaded.learner.learning_rate()
+            loaded.learner.learning_rate(),
+            stored.runner.num_envs,
+            stored.runner.steps_per_env,
+            stored.learner.risk_label(),
+            stored.runner.seed
         );
         (stored, loaded.learner, loaded.progress)
     } else {
+        println!(
+            "training {} envs x {} steps, critic {:?}, {}, seed {} -> {}",
+            cfg.runner.num_envs,
+            cfg.runner.steps_per_env,
+            cfg.learner.critic,
+            cfg.learner.risk_label(),
+            cfg.runner.seed,
+            dir.root.display()
+        );
         let learner = Learner::new(OBS_DIM, ACT_DIM, &cfg.learner, cfg.runner.seed)?;
         let progress = Progress {
             rng_seed: cfg.runner.seed ^ 0xA11_0C47,
@@ -116,7 +196,8 @@ pub fn train(
     let mut rng = ChaCha8Rng::seed_from_u64(progress.rng_seed);
     rng.set_word_pos(progress.rng_word_pos);
     let mut rollout = Rollout::new(r.steps_per_env, r.num_envs, OBS_DIM, ACT_DIM);
-    let mut metrics = MetricsCsv::open(&dir.metrics())?;
+    // a resumed run continues from its checkpoint: later rows are dropped
+    let mut metrics = MetricsCsv::open_resumed(&dir.metrics(), progress.iteration)?;
     let lin_weight_dt = cfg.env.reward.lin_vel_tracking * cfg.env.control.policy_dt_s();
 
     let bar = progress_bar(progress.iteration, r.iterations);
@@ -126,6 +207,7 @@ pub fn train(
     let mut interrupted = false;
     let mut last_checkpoint = dir.latest();
     let wall_start = Instant::now() - std::time::Duration::from_secs_f64(progress.wall_s);
+    let mut instabilities_before = envs.instabilities();
 
     while progress.iteration < r.iterations {
         if stop.load(Ordering::SeqCst) {
@@ -170,6 +252,18 @@ pub fn train(
         let t1 = Instant::now();
         let update: UpdateStats = learner.update(&rollout)?;
         let learn_s = t1.elapsed().as_secs_f64();
+        ensure_finite(&update, &learner, progress.iteration + 1, &last_checkpoint)?;
+        let new_instabilities = envs.instabilities() - instabilities_before;
+        instabilities_before += new_instabilities;
+        if new_instabilities > 0 {
+            log_line(
+                &bar,
+                format!(
+                    "warning: iteration {}: {new_instabilities} physics failures (MuJoCo flagged a bad state; those episodes were reset). Many mean the physics dt or the gains are off.",
+                    progress.iteration + 1
+                ),
+            );
+        }
 
         progress.iteration += 1;
         let iteration_env_steps = (r.num_envs * r.steps_per_env) as u64;
@@ -244,6 +338,33 @@ pub fn train(
         last_checkpoint,
         final_episode_stats: last_stats,
     })
+}
+
+/// Stops a run whose update produced a non-finite loss or weights, instead of
+/// training (and checkpointing) garbage to the end.
+fn ensure_finite(
+    u: &UpdateStats,
+    learner: &Learner,
+    iteration: usize,
+    last_checkpoint: &Path,
+) -> Result<()> {
+    let losses_ok =
+        u.policy_loss.is_finite() && u.value_loss.is_finite() && u.grad_norm.is_finite();
+    let weights_ok = learner
+        .state()
+        .iter()
+        .all(|t| t.data.iter().all(|v| v.is_finite()));
+    if losses_ok && weights_ok {
+        return Ok(());
+    }
+    anyhow::bail!(
+        "training diverged at iteration {iteration}: policy loss {}, value loss {}, gradient norm {}{} (check observation scales, reward weights and the physics dt); nothing was saved after the last good checkpoint {}",
+        u.policy_loss,
+        u.value_loss,
+        u.grad_norm,
+        if weights_ok { "" } else { ", non-finite weights" },
+        last_checkpoint.display()
+    )
 }
 
 /// Writes the numbered checkpoint and the rolling `latest` one.
