@@ -58,18 +58,21 @@ impl AdamState {
         let step_size = (lr as f64 / bc1) as f32;
         let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
         let (b1, b2, eps) = (cfg.beta1, cfg.beta2, cfg.eps);
-        with_simd(|| {
-            for (((p, g), m), v) in params
-                .iter_mut()
-                .zip(grads)
-                .zip(&mut self.m)
-                .zip(&mut self.v)
-            {
-                *m = b1 * *m + (1.0 - b1) * g;
-                *v = b2 * *v + (1.0 - b2) * g * g;
-                *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
-            }
-        })
+        with_simd(
+            #[inline(always)]
+            || {
+                for (((p, g), m), v) in params
+                    .iter_mut()
+                    .zip(grads)
+                    .zip(&mut self.m)
+                    .zip(&mut self.v)
+                {
+                    *m = b1 * *m + (1.0 - b1) * g;
+                    *v = b2 * *v + (1.0 - b2) * g * g;
+                    *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
+                }
+            },
+        )
     }
 }
 

@@ -236,45 +236,57 @@ pub fn exp_nonpos(x: f32) -> f32 {
 /// In place `x <- elu(x) = x if x > 0 else exp(x) - 1`.
 pub fn elu_inplace(x: &mut [f32]) {
     for_chunks(x, |c| {
-        with_simd(|| {
-            for v in c {
-                let z = *v;
-                let e = exp_nonpos(z) - 1.0;
-                *v = if z > 0.0 { z } else { e };
-            }
-        })
+        with_simd(
+            #[inline(always)]
+            || {
+                for v in c {
+                    let z = *v;
+                    let e = exp_nonpos(z) - 1.0;
+                    *v = if z > 0.0 { z } else { e };
+                }
+            },
+        )
     });
 }
 
 /// Backward of ELU written in terms of its output `a`: `g <- g * (a > 0 ? 1 : a + 1)`.
 pub fn elu_backward_inplace(g: &mut [f32], a: &[f32]) {
     for_chunk_pairs(g, a, |g, a| {
-        with_simd(|| {
-            for (g, &a) in g.iter_mut().zip(a) {
-                *g *= if a > 0.0 { 1.0 } else { a + 1.0 };
-            }
-        })
+        with_simd(
+            #[inline(always)]
+            || {
+                for (g, &a) in g.iter_mut().zip(a) {
+                    *g *= if a > 0.0 { 1.0 } else { a + 1.0 };
+                }
+            },
+        )
     });
 }
 
 /// `acc += x`, element-wise (summing per-thread gradients).
 pub fn add_assign(acc: &mut [f32], x: &[f32]) {
     for_chunk_pairs(acc, x, |acc, x| {
-        with_simd(|| {
-            for (a, &x) in acc.iter_mut().zip(x) {
-                *a += x;
-            }
-        })
+        with_simd(
+            #[inline(always)]
+            || {
+                for (a, &x) in acc.iter_mut().zip(x) {
+                    *a += x;
+                }
+            },
+        )
     });
 }
 
 /// In place ReLU.
 pub fn relu_inplace(x: &mut [f32]) {
-    with_simd(|| {
-        for v in x {
-            *v = v.max(0.0);
-        }
-    })
+    with_simd(
+        #[inline(always)]
+        || {
+            for v in x {
+                *v = v.max(0.0);
+            }
+        },
+    )
 }
 
 /// `y[r, :] = bias` for every row (`y` is `rows x bias.len()`).
@@ -286,13 +298,16 @@ pub fn fill_rows(y: &mut [f32], bias: &[f32]) {
 
 /// `out[j] += sum_r x[r, j]` for `x` of `rows x out.len()`.
 pub fn add_col_sums(x: &[f32], out: &mut [f32]) {
-    with_simd(|| {
-        for row in x.chunks_exact(out.len()) {
-            for (o, v) in out.iter_mut().zip(row) {
-                *o += v;
+    with_simd(
+        #[inline(always)]
+        || {
+            for row in x.chunks_exact(out.len()) {
+                for (o, v) in out.iter_mut().zip(row) {
+                    *o += v;
+                }
             }
-        }
-    })
+        },
+    )
 }
 
 #[cfg(test)]

@@ -183,6 +183,17 @@ pub struct Workspace {
     idx: Vec<usize>,
     mb: MiniBatch,
     shards: Vec<Shard>,
+    targets: TargetScratch,
+}
+
+/// Buffers of the once-per-update critic pass over the whole rollout (kept:
+/// fresh allocations of this size cost page faults every update).
+#[derive(Clone, Debug, Default)]
+struct TargetScratch {
+    finals: Vec<f32>,
+    mlp: MlpCache,
+    iqn: IqnCache,
+    taus: Vec<f32>,
 }
 
 /// One mini-batch gathered from the rollout (rows in shuffled order).
@@ -288,18 +299,26 @@ fn targets(
     r: &Rollout,
     cfg: &PpoConfig,
     ccfg: &CriticLossConfig,
+    scratch: &mut TargetScratch,
     rng: &mut impl Rng,
 ) -> Targets {
-    let finals: Vec<f32> = r
-        .final_obs
-        .iter()
-        .flat_map(|(_, o)| o.iter().copied())
-        .collect();
+    let TargetScratch {
+        finals,
+        mlp,
+        iqn,
+        taus,
+    } = scratch;
+    finals.clear();
+    finals.extend(r.final_obs.iter().flat_map(|(_, o)| o.iter().copied()));
     match &ac.critic {
         Critic::Scalar(c) => {
-            let v = |o: &[f32]| c.values(o, o.len() / r.obs_dim);
+            let mut v = |o: &[f32]| {
+                c.forward(o, o.len() / r.obs_dim, mlp);
+                mlp.output().to_vec()
+            };
             let values = v(&r.obs);
-            let next = next_values(r, 1, &values, &v(&r.last_obs), &v(&finals));
+            let (last, fin) = (v(&r.last_obs), v(finals));
+            let next = next_values(r, 1, &values, &last, &fin);
             let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
             let returns = adv.iter().zip(&values).map(|(a, v)| a + v).collect();
             Targets {
@@ -311,14 +330,10 @@ fn targets(
             // one trunk pass per state: the value grid and the target grid together
             let k = ac.value_taus.len();
             let nt = ccfg.num_target_taus;
-            let taus: Vec<f32> = ac
-                .value_taus
-                .iter()
-                .copied()
-                .chain(midpoint_taus(nt))
-                .collect();
-            let split = |o: &[f32]| {
-                let z = c.quantiles(o, o.len() / r.obs_dim, &taus);
+            taus.clear();
+            taus.extend(ac.value_taus.iter().copied().chain(midpoint_taus(nt)));
+            let mut split = |o: &[f32]| {
+                let z = c.forward(o, o.len() / r.obs_dim, taus, iqn);
                 let mut v = Vec::with_capacity(z.len() / (k + nt));
                 let mut q = Vec::with_capacity(z.len() / (k + nt) * nt);
                 for row in z.chunks_exact(k + nt) {
@@ -329,7 +344,7 @@ fn targets(
             };
             let (values, z) = split(&r.obs);
             let (last_v, last_z) = split(&r.last_obs);
-            let (fin_v, fin_z) = split(&finals);
+            let (fin_v, fin_z) = split(finals);
             let next = next_values(r, 1, &values, &last_v, &fin_v);
             let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
             let next_z = next_values(r, nt, &z, &last_z, &fin_z);
@@ -368,7 +383,7 @@ pub fn update(
         clock = now;
         dt
     };
-    let tg = targets(ac, r, cfg, ccfg, rng);
+    let tg = targets(ac, r, cfg, ccfg, &mut ws.targets, rng);
     time.targets_s += lap();
     let total = r.num_steps * r.num_envs;
     let n_mb = cfg.num_mini_batches.clamp(1, total);
@@ -377,7 +392,9 @@ pub fn update(
     let mut stats = UpdateStats::default();
     let mut count = 0usize;
     let mut clipped_steps = 0usize;
-    let Workspace { idx, mb, shards } = ws;
+    let Workspace {
+        idx, mb, shards, ..
+    } = ws;
     idx.clear();
     idx.extend(0..total);
     // one shard per thread: each runs forward, loss and backward of its rows

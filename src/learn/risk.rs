@@ -102,6 +102,42 @@ fn rho_and_slope(tau: f32, delta: f32, kappa: f32) -> (f32, f32) {
     (w * c * (a - 0.5 * c), w * delta.max(-kappa).min(kappa))
 }
 
+/// One row of [`quantile_huber_loss`]: writes `d loss / d z_i` for the row's
+/// predictions and returns the row's unscaled loss. Inlined into the caller's
+/// SIMD frame ([`with_simd`]) so it vectorises for the CPU's widest level.
+#[inline(always)]
+fn huber_row(
+    g_row: &mut [f32],
+    z_row: &[f32],
+    t_row: &[f32],
+    taus: &[f32],
+    kappa: f32,
+    scale: f32,
+) -> f64 {
+    let mut loss = 0.0f32;
+    for ((g, &z), &tau) in g_row.iter_mut().zip(z_row).zip(taus) {
+        // LANES independent accumulators so the loop vectorises (no fast-math)
+        let (mut l, mut d) = ([0.0f32; LANES], [0.0f32; LANES]);
+        let chunks = t_row.chunks_exact(LANES);
+        let rest = chunks.remainder();
+        for c in chunks {
+            for k in 0..LANES {
+                let (lk, dk) = rho_and_slope(tau, c[k] - z, kappa);
+                l[k] += lk;
+                d[k] += dk;
+            }
+        }
+        for &t in rest {
+            let (lk, dk) = rho_and_slope(tau, t - z, kappa);
+            l[0] += lk;
+            d[0] += dk;
+        }
+        loss += l.iter().sum::<f32>();
+        *g = -d.iter().sum::<f32>() * scale;
+    }
+    loss as f64
+}
+
 /// f32 lanes of one AVX-512 register: accumulators per target row in
 /// [`quantile_huber_loss`] (also fills two AVX2 registers).
 const LANES: usize = 16;
@@ -126,30 +162,10 @@ pub fn quantile_huber_loss(
     assert!(n_t > 0 && targets.len() == batch * n_t);
     let scale = 1.0 / (batch as f32 * n_t as f32);
     let row = |((g_row, z_row), t_row): ((&mut [f32], &[f32]), &[f32])| {
-        with_simd(|| {
-            let mut loss = 0.0f32;
-            for ((g, &z), &tau) in g_row.iter_mut().zip(z_row).zip(taus) {
-                // LANES independent accumulators so the loop vectorises (no fast-math)
-                let (mut l, mut d) = ([0.0f32; LANES], [0.0f32; LANES]);
-                let chunks = t_row.chunks_exact(LANES);
-                let rest = chunks.remainder();
-                for c in chunks {
-                    for k in 0..LANES {
-                        let (lk, dk) = rho_and_slope(tau, c[k] - z, kappa);
-                        l[k] += lk;
-                        d[k] += dk;
-                    }
-                }
-                for &t in rest {
-                    let (lk, dk) = rho_and_slope(tau, t - z, kappa);
-                    l[0] += lk;
-                    d[0] += dk;
-                }
-                loss += l.iter().sum::<f32>();
-                *g = -d.iter().sum::<f32>() * scale;
-            }
-            loss as f64
-        })
+        with_simd(
+            #[inline(always)]
+            || huber_row(g_row, z_row, t_row, taus, kappa, scale),
+        )
     };
     let loss: f64 = if is_serial() {
         grad.chunks_mut(n)
