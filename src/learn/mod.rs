@@ -11,10 +11,10 @@
 //! - [`checkpoint`]: atomic safetensors files with metadata.
 //!
 //! Cost at the defaults (obs 48, act 12, 256 envs x 24 steps, 5 x 4 mini-batches
-//! of 1536; `benches/ppo.rs`, 2 cores): one update is ~71 GFLOP of matmul;
-//! the plain GEMMs alone run at ~100 GFLOP/s (~0.63 s per update), the update
-//! ~0.8-0.9 s for either critic (~75-90 GFLOP/s). GEMM is ~75% of the profile;
-//! the quantile Huber loss (1536 x 64 x 64 pairs per mini-batch) ~3 ms each.
+//! of 1536; `benches/ppo.rs`, 2 cores with AVX-512): one update is ~71 GFLOP of
+//! matmul and takes ~0.45-0.5 s with either critic (~140-170 GFLOP/s; plain GEMMs
+//! of the same shapes reach ~210-280). Each mini-batch is split into one shard of
+//! rows per thread (single-threaded kernels inside, gradients summed), see `ppo`.
 //!
 //! Typical loop (the runner's):
 //! ```no_run
