@@ -198,3 +198,33 @@ fn same_seed_gives_bit_identical_rollouts_with_one_or_two_threads() {
         );
     }
 }
+
+/// A resumed rough-ground run puts every robot back on its stored level.
+#[test]
+fn terrain_levels_are_restored_for_a_resume() {
+    let mut c = cfg();
+    c.terrain.kind = TerrainKind::Rough;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 5).unwrap();
+    let mut v = VecEnv::new(c.clone(), &scene.model, scene.terrain.clone(), 6, 1, 11).unwrap();
+    let top = scene.terrain.as_ref().unwrap().config().num_levels - 1;
+    let stored = vec![0, top, 1, top, 2, 0];
+    v.restore_terrain_levels(&stored).unwrap();
+    assert_eq!(v.terrain_levels().unwrap(), stored);
+    let mean = stored.iter().sum::<usize>() as f64 / 6.0;
+    assert!((v.mean_terrain_level() - mean).abs() < 1e-12);
+    assert!(v
+        .envs()
+        .iter()
+        .zip(&stored)
+        .all(|(e, &l)| e.terrain_level == l));
+    // wrong length or a level beyond the terrain: refused, levels unchanged
+    assert!(v.restore_terrain_levels(&[0, 1]).is_err());
+    assert!(v.restore_terrain_levels(&[top + 1; 6]).is_err());
+    assert_eq!(v.terrain_levels().unwrap(), stored);
+    // flat ground has no curriculum to restore
+    let flat = Arc::new(cfg());
+    let scene = build_scene(&flat, 5).unwrap();
+    let mut f = VecEnv::new(flat, &scene.model, None, 2, 1, 1).unwrap();
+    assert!(f.terrain_levels().is_none() && f.restore_terrain_levels(&[0, 0]).is_err());
+}

@@ -266,3 +266,34 @@ fn resume_after_a_crash_continues_from_the_newest_readable_checkpoint() {
         4
     );
 }
+
+/// Rough-ground checkpoints carry the curriculum; resuming keeps it going.
+#[test]
+fn rough_checkpoints_store_every_envs_terrain_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut cfg = tiny_config(CriticKind::Scalar);
+    cfg.env.terrain.kind = TerrainKind::Rough;
+    train(cfg.clone(), &run, false, no_stop(), &mut ()).unwrap();
+    let p = load_policy(&run.join(LATEST)).unwrap();
+    let levels = p.progress.terrain_levels.expect("levels stored");
+    assert_eq!(levels.len(), 8);
+    cfg.runner.iterations = 3;
+    train(cfg, &run, true, no_stop(), &mut ()).unwrap();
+    let after = load_policy(&run.join(LATEST)).unwrap().progress;
+    assert_eq!(after.iteration, 3);
+    let moved = after
+        .terrain_levels
+        .unwrap()
+        .iter()
+        .zip(&levels)
+        .all(|(a, b)| a.abs_diff(*b) <= 1);
+    assert!(moved, "one iteration moves each level by at most one");
+    // flat runs store none
+    let (_d, flat) = trained_run(CriticKind::Scalar);
+    assert!(load_policy(&flat.join(LATEST))
+        .unwrap()
+        .progress
+        .terrain_levels
+        .is_none());
+}

@@ -798,6 +798,25 @@ impl Curriculum {
     pub fn num_envs(&self) -> usize {
         self.levels.len()
     }
+    /// Puts every env back on a stored level; refuses a list of the wrong
+    /// length or with a level beyond the terrain's.
+    pub fn restore_levels(&mut self, levels: &[usize]) -> std::result::Result<(), String> {
+        if levels.len() != self.levels.len() {
+            return Err(format!(
+                "{} stored terrain levels for {} envs",
+                levels.len(),
+                self.levels.len()
+            ));
+        }
+        if let Some(l) = levels.iter().find(|&&l| l >= self.num_levels) {
+            return Err(format!(
+                "stored terrain level {l} but the terrain has {} levels",
+                self.num_levels
+            ));
+        }
+        self.levels.copy_from_slice(levels);
+        Ok(())
+    }
     pub fn level(&self, env: usize) -> usize {
         self.levels[env]
     }

@@ -246,6 +246,22 @@ impl VecEnv {
         self.envs.iter().map(|e| e.instabilities).sum()
     }
 
+    /// Every env's terrain level (`None` on flat ground), for checkpoints.
+    pub fn terrain_levels(&self) -> Option<Vec<usize>> {
+        self.curriculum.as_ref().map(|c| c.levels().to_vec())
+    }
+
+    /// Restores stored terrain levels (a resumed run continues its curriculum)
+    /// and restarts every env on its tile.
+    pub fn restore_terrain_levels(&mut self, levels: &[usize]) -> Result<()> {
+        let c = self.curriculum.as_mut().ok_or_else(|| {
+            SimError::Invalid("terrain levels stored but this run has no terrain".into())
+        })?;
+        c.restore_levels(levels).map_err(SimError::Invalid)?;
+        self.sync_terrain_cells();
+        self.reset_all()
+    }
+
     /// Mean terrain level over envs (0 on flat ground).
     pub fn mean_terrain_level(&self) -> f64 {
         self.curriculum.as_ref().map_or(0.0, |c| c.mean_level())

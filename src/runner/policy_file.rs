@@ -15,7 +15,7 @@ use crate::learn::{load_checkpoint, save_checkpoint, Learner};
 pub const FORMAT_VERSION: &str = "1";
 
 /// Runner progress stored next to the learner state.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Progress {
     /// Iterations completed.
     pub iteration: usize,
@@ -24,6 +24,8 @@ pub struct Progress {
     /// Action-sampling RNG: seed and position in its stream.
     pub rng_seed: u64,
     pub rng_word_pos: u128,
+    /// Every env's terrain-curriculum level (rough ground; `None` on flat).
+    pub terrain_levels: Option<Vec<usize>>,
 }
 
 /// Writes `learner` + `progress` + `cfg` to `path` (temp file + rename).
@@ -49,6 +51,10 @@ pub fn save_policy(
     meta.insert("wall_s".into(), format!("{:.3}", progress.wall_s));
     meta.insert("rng_seed".into(), progress.rng_seed.to_string());
     meta.insert("rng_word_pos".into(), progress.rng_word_pos.to_string());
+    if let Some(levels) = &progress.terrain_levels {
+        let text: Vec<String> = levels.iter().map(|l| l.to_string()).collect();
+        meta.insert("terrain_levels".into(), text.join(","));
+    }
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
@@ -129,6 +135,20 @@ pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
         wall_s: meta_parse(&meta, "wall_s", path)?,
         rng_seed: meta_parse(&meta, "rng_seed", path)?,
         rng_word_pos: meta_parse(&meta, "rng_word_pos", path)?,
+        terrain_levels: meta
+            .get("terrain_levels")
+            .map(|text| {
+                text.split(',')
+                    .map(|v| v.parse::<usize>())
+                    .collect::<std::result::Result<Vec<_>, _>>()
+                    .map_err(|_| {
+                        anyhow::anyhow!(
+                            "{}: metadata `terrain_levels` is not a list of levels",
+                            path.display()
+                        )
+                    })
+            })
+            .transpose()?,
     };
     let mut learner = Learner::new(OBS_DIM, ACT_DIM, &config.learner, config.runner.seed)?;
     learner.load_state(&tensors).with_context(|| {

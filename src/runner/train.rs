@@ -190,6 +190,10 @@ pub fn train(
         threads,
         env_seed,
     )?;
+    if let Some(levels) = &progress.terrain_levels {
+        envs.restore_terrain_levels(levels)
+            .context("restoring the terrain curriculum of the checkpoint")?;
+    }
     if cfg.env.episode.randomize_initial_length {
         envs.randomize_episode_progress();
     }
@@ -270,6 +274,7 @@ pub fn train(
         progress.total_env_steps += iteration_env_steps;
         progress.wall_s = wall_start.elapsed().as_secs_f64();
         progress.rng_word_pos = rng.get_word_pos();
+        progress.terrain_levels = envs.terrain_levels();
         if !episodes.is_empty() {
             last_stats = EpisodeStats::from_episodes(&episodes, lin_weight_dt);
         }
