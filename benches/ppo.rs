@@ -179,7 +179,11 @@ fn summary() {
             for _round in 0..2 {
                 for (i, k) in [Kernels::Legacy, Kernels::Auto].into_iter().enumerate() {
                     mat::set_kernels(k);
-                    let dt = pool.install(|| time_it(2, || drop(black_box(l.update(&r).unwrap()))));
+                    let dt = pool.install(|| {
+                        time_it(2, || {
+                            black_box(l.update(&r).unwrap());
+                        })
+                    });
                     let dg = pool.install(|| time_it(10, || gemm_only.run()));
                     t[i] = if t[i] == 0.0 { dt } else { f64::min(t[i], dt) };
                     g[i] = if g[i] == 0.0 { dg } else { f64::min(g[i], dg) };

@@ -44,7 +44,7 @@ fn train(kappa: f32, steps: usize) -> IqnCritic {
         let targets: Vec<f32> = (0..4 * n_t).map(|_| sample(&mut rng)).collect();
         let z = critic.forward(&obs, 4, &taus, &mut cache);
         let mut dz = vec![0.0; z.len()];
-        quantile_huber_loss(&z, &taus, &targets, kappa, &mut dz);
+        quantile_huber_loss(z, &taus, &targets, kappa, &mut dz);
         let mut g = vec![0.0; critic.params.len()];
         critic.backward(&mut g, &obs, 4, &mut cache, &dz);
         let lr = if step < steps * 3 / 4 { 3e-3 } else { 3e-4 };
