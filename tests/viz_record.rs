@@ -121,7 +121,7 @@ fn record_play(
 }
 
 #[test]
-fn play_recording_has_one_transform_and_one_bar_chart_per_step() {
+fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("play.rrd");
     let cfg = small_cfg(CriticKind::Iqn);
