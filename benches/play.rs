@@ -4,7 +4,10 @@
 //! - `no recording`: policy + physics only (what `play` costs without a viewer);
 //! - `disabled recording`: everything the logger does (critic evaluated every step,
 //!   columns built) with rerun's disabled stream (no serialisation, no I/O);
-//! - `recording to file`: the full thing, as `rall play --save`.
+//! - `recording to file`: the full thing, as `rall play --save` (the critic read
+//!   and logged every `VALUE_EVERY_FRAMES` frames);
+//! - `recording to file, value every step`: the same with the critic read and
+//!   logged every policy step, as before issue 14 (the "before" of the change).
 //!
 //! After criterion, prints the overhead ratios and the .rrd size per simulated minute.
 //!
@@ -102,7 +105,11 @@ fn main() {
     c.final_summary();
 
     // Side by side, interleaved (the machine may be busy): median of 7 each.
-    let mut t = [Vec::new(), Vec::new(), Vec::new()];
+    let every_step = PlayOptions {
+        value_every_frames: 1,
+        ..opts.clone()
+    };
+    let mut t = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
     for _ in 0..7 {
         for (k, times) in t.iter_mut().enumerate() {
             let t0 = Instant::now();
@@ -114,7 +121,13 @@ fn main() {
                     &opts,
                     Some(rerun::RecordingStream::disabled()),
                 ),
-                _ => run(&learner, &env, &opts, Some(file_recording(&path))),
+                2 => run(&learner, &env, &opts, Some(file_recording(&path))),
+                _ => run(
+                    &learner,
+                    &env,
+                    &every_step,
+                    Some(file_recording(&dir.path().join("every-step.rrd"))),
+                ),
             };
             times.push(t0.elapsed().as_secs_f64());
         }
@@ -123,8 +136,13 @@ fn main() {
         v.sort_by(|a, b| a.total_cmp(b));
         v[v.len() / 2]
     };
-    let [mut a, mut b, mut f] = t;
-    let (none, disabled, file) = (median(&mut a), median(&mut b), median(&mut f));
+    let [mut a, mut b, mut f, mut g] = t;
+    let (none, disabled, file, file_every) = (
+        median(&mut a),
+        median(&mut b),
+        median(&mut f),
+        median(&mut g),
+    );
     let sim_min = STEPS as f64 * env.control.policy_dt_s() / 60.0;
     let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
     println!(
@@ -140,7 +158,20 @@ fn main() {
         "  disabled recording {:8.1} ms  (critic + logger, no rerun I/O)",
         disabled * 1e3
     );
-    println!("  recording to file  {:8.1} ms", file * 1e3);
+    println!(
+        "  recording to file  {:8.1} ms  (critic every {} frames)",
+        file * 1e3,
+        viz::episode::VALUE_EVERY_FRAMES
+    );
+    println!(
+        "  same, critic every step {:8.1} ms  (before issue 14)",
+        file_every * 1e3
+    );
+    println!(
+        "  overhead with the critic every step (before):        {:+.1}% (ratio {:.3})",
+        (file_every / none - 1.0) * 100.0,
+        file_every / none
+    );
     println!(
         "  overhead of logging to a file vs no recording:      {:+.1}% (ratio {:.3})",
         (file / none - 1.0) * 100.0,

@@ -10,6 +10,8 @@ pub mod env;
 #[cfg(feature = "sim")]
 pub mod eval;
 #[cfg(feature = "sim")]
+pub mod export;
+#[cfg(feature = "sim")]
 pub mod robot;
 #[cfg(feature = "sim")]
 pub mod sim;

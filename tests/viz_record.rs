@@ -14,6 +14,7 @@ use rall::env::terrain::{TerrainKind, TerrainProportions};
 use rall::env::{ACT_DIM, OBS_DIM};
 use rall::learn::{CriticKind, Learner};
 use rall::runner::{save_policy, Progress};
+use rall::viz::episode::{bar_widths, VALUE_EVERY_FRAMES};
 use rall::viz::{
     self, PlayOptions, RerunTarget, RrdSummary, TrainRecorder, TrainRecordingOptions, ValueProbe,
 };
@@ -120,7 +121,7 @@ fn record_play(
 }
 
 #[test]
-fn play_recording_has_one_transform_and_one_bar_chart_per_step() {
+fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("play.rrd");
     let cfg = small_cfg(CriticKind::Iqn);
@@ -171,17 +172,26 @@ fn play_recording_has_one_transform_and_one_bar_chart_per_step() {
         foot.components
     );
     assert!(s.entity("world/ground").expect("ground").static_rows >= 1);
-    // The critic: a bar chart per frame, CVaR/mean and IQR series.
+    // The critic: a bar chart, CVaR/mean and IQR series on every 5th frame (10 Hz).
+    let value_frames = frames.div_ceil(VALUE_EVERY_FRAMES as u64);
     let bars = s.entity("value/quantiles").expect("bar chart");
-    assert_eq!(bars.temporal_rows, frames);
+    assert_eq!(bars.temporal_rows, value_frames);
     assert!(
         bars.components.iter().any(|c| c.starts_with("BarChart")),
         "{:?}",
         bars.components
     );
+    assert!(
+        bars.components.iter().any(|c| c.contains("widths")),
+        "the bars need widths: {:?}",
+        bars.components
+    );
+    for p in ["value/stats", "value/iqr"] {
+        let e = s.entity(p).unwrap_or_else(|| panic!("no {p}"));
+        assert_eq!(e.temporal_rows, value_frames, "{p}");
+        assert!(e.static_rows >= 1, "{p} has no series names");
+    }
     for p in [
-        "value/stats",
-        "value/iqr",
         "plots/velocity/vx",
         "plots/velocity/vy",
         "plots/velocity/yaw_rate",
@@ -259,7 +269,7 @@ fn scalar_critic_logs_the_value_without_a_distribution() {
     assert!(s.entity("value/quantiles").is_none());
     assert_eq!(
         s.entity("value/stats").unwrap().temporal_rows,
-        report.episodes[0].steps as u64 + 1
+        (report.episodes[0].steps as u64 + 1).div_ceil(VALUE_EVERY_FRAMES as u64)
     );
 }
 
@@ -325,7 +335,7 @@ fn training_recording_has_metrics_per_iteration_and_evaluation_episodes() {
     assert!(trunk.timelines.contains("iteration") && trunk.timelines.contains("sim_time"));
     assert_eq!(
         s.entity("value/quantiles").unwrap().temporal_rows,
-        trunk.temporal_rows
+        trunk.temporal_rows.div_ceil(VALUE_EVERY_FRAMES as u64)
     );
     assert!(s.blueprint_activations == 1);
     verify_with_rerun_cli(&path);
@@ -340,6 +350,14 @@ fn blueprint_files_decode() {
     assert!(s.blueprint_chunks > 0 && s.blueprint_activations == 1);
     assert!(s.application_ids.contains(viz::PLAY_APP_ID));
     assert!(s.entities.is_empty(), "a blueprint holds no recording data");
+    // The 3D view's eye follows the robot (a view property in the same blueprint).
+    assert!(
+        s.blueprint_entities
+            .iter()
+            .any(|e| e.starts_with("/view/") && e.ends_with("/EyeControls3D")),
+        "{:?}",
+        s.blueprint_entities
+    );
 }
 
 fn rall(dir: &Path) -> Command {
@@ -518,4 +536,19 @@ fn a_named_scenario_plays_with_its_payload_and_ground() {
         Err(e) => assert!(format!("{e:#}").contains("lava"), "{e:#}"),
     }
     verify_with_rerun_cli(&path);
+}
+
+#[test]
+fn quantile_bars_tile_the_unit_interval() {
+    let cfg = small_cfg(CriticKind::Iqn);
+    let l = learner(&cfg);
+    let probe = ValueProbe::new(&l, 32);
+    let w = bar_widths(probe.taus());
+    assert_eq!(w.len(), 32);
+    // Each bar is 1/32 wide and centred on its tau: side by side over [0, 1], no overlap.
+    for (tau, w) in probe.taus().iter().zip(&w) {
+        assert!((w - 1.0 / 32.0).abs() < 1e-6, "{w}");
+        assert!(tau - w / 2.0 >= -1e-6 && tau + w / 2.0 <= 1.0 + 1e-6);
+    }
+    assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
 }

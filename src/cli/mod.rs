@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod eval;
+pub mod export;
 pub mod inspect;
 pub mod play;
 pub mod train;
@@ -29,6 +30,8 @@ pub enum Command {
     Play(play::PlayArgs),
     /// Evaluate checkpoints (tracking; robustness benchmarks).
     Eval(eval::EvalArgs),
+    /// Export a checkpoint's policy to ONNX with a JSON sidecar for a robot controller (`--help`: the 50 Hz robot loop).
+    Export(export::ExportArgs),
     /// Measure throughput (env steps/s versus the raw physics limit).
     Bench(bench::BenchArgs),
 }
@@ -39,6 +42,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Play(args) => play::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Export(args) => export::run(&args),
         Command::Bench(args) => bench::run(&args),
     }
 }

@@ -1,14 +1,24 @@
 //! The viewer layouts, sent with every recording (the Rust SDK builds blueprints),
 //! and written as `.rbl` files for recordings made without one
 //! (`rerun file.rrd viz/rall-play.rbl`).
+//!
+//! The 3D view's eye follows the robot: an `EyeControls3D` view property tracking
+//! `world/robot/trunk` from a few metres behind it. rerun 0.36's Rust blueprint
+//! builder cannot set view properties, so [`Layout::send`] adds that property to
+//! the builder's blueprint messages before sending them (one blueprint, one
+//! activation, exactly as the builder would).
 
 use std::path::Path;
 
 use anyhow::{Context, Result};
+use rerun::blueprint::components::Eye3DKind;
 use rerun::blueprint::{
     BarChartView, Blueprint, BlueprintActivation, ContainerLike, Horizontal, Spatial3DView, Tabs,
     TextLogView, TimeSeriesView, Vertical,
 };
+use rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D;
+use rerun::log::LogMsg;
+use rerun::{RecordingStream, RecordingStreamBuilder};
 
 /// Application id of `rall play` recordings (a blueprint applies to one application).
 pub const PLAY_APP_ID: &str = "rall-play";
@@ -19,11 +29,99 @@ fn series(name: &str, origin: &str) -> ContainerLike {
     TimeSeriesView::new(name).with_origin(origin).into()
 }
 
+/// The entity the 3D view's eye follows.
+pub const FOLLOWED_ENTITY: &str = "world/robot/trunk";
+/// Where the eye starts (world, m): behind, to the right of and above the spawn
+/// point, looking at the trunk; it then keeps this offset as the robot walks.
+const EYE_POSITION_M: [f32; 3] = [-1.6, -1.6, 1.1];
+const EYE_TARGET_M: [f32; 3] = [0.0, 0.0, 0.3];
+
+/// A viewer layout: the blueprint and the eye of each 3D view (by blueprint path).
+pub struct Layout {
+    blueprint: Blueprint,
+    eyes: Vec<(String, EyeControls3D)>,
+}
+
+impl Layout {
+    /// Sends the layout through `rec` (a recording or a blueprint file) and
+    /// activates it as the default.
+    pub fn send(&self, rec: &RecordingStream) -> Result<()> {
+        let app = rec
+            .store_info()
+            .map(|i| i.application_id().clone())
+            .context("the recording has no store info")?;
+        // The builder's messages, captured in memory.
+        let (mem, storage) = RecordingStreamBuilder::new(app.clone())
+            .blueprint()
+            .memory()
+            .context("blueprint memory stream")?;
+        self.blueprint
+            .send(
+                &mem,
+                BlueprintActivation {
+                    make_active: true,
+                    make_default: true,
+                },
+            )
+            .context("building the blueprint")?;
+        mem.flush_blocking().context("flushing the blueprint")?;
+        let msgs = storage.take();
+        let cmd = msgs
+            .iter()
+            .find_map(|m| match m {
+                LogMsg::BlueprintActivationCommand(c) => Some(c.clone()),
+                _ => None,
+            })
+            .context("the blueprint builder sent no activation")?;
+        let id = cmd.blueprint_id.clone();
+        let mut out: Vec<LogMsg> = msgs
+            .into_iter()
+            .filter(|m| m.store_id() == &id && !matches!(m, LogMsg::BlueprintActivationCommand(_)))
+            .collect();
+        // The eyes, logged into that same blueprint store.
+        let (eye, eye_storage) = RecordingStreamBuilder::new(app)
+            .recording_id(id.recording_id().clone())
+            .blueprint()
+            .memory()
+            .context("blueprint memory stream")?;
+        eye.set_time_sequence("blueprint", 0);
+        for (view, controls) in &self.eyes {
+            eye.log(format!("{view}/EyeControls3D"), controls)
+                .context("logging the 3D eye")?;
+        }
+        eye.flush_blocking().context("flushing the 3D eye")?;
+        out.extend(
+            eye_storage
+                .take()
+                .into_iter()
+                .filter(|m| matches!(m, LogMsg::ArrowMsg(..)) && m.store_id() == &id),
+        );
+        rec.send_blueprint(out, cmd);
+        Ok(())
+    }
+}
+
+/// A 3D view of `world` whose eye frames and follows the robot.
+fn robot_view(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
+    let view: ContainerLike = Spatial3DView::new("robot").with_origin("world").into();
+    if let ContainerLike::View(v) = &view {
+        eyes.push((
+            v.blueprint_path().to_string(),
+            EyeControls3D::new()
+                .with_kind(Eye3DKind::Orbital)
+                .with_position(EYE_POSITION_M)
+                .with_look_target(EYE_TARGET_M)
+                .with_tracking_entity(FOLLOWED_ENTITY),
+        ));
+    }
+    view
+}
+
 /// The episode panels: 3D robot and terrain, events, the quantile bar chart, mean and
 /// CVaR, IQR, velocities (command vs measured), torques, contacts.
-fn episode_layout() -> ContainerLike {
+fn episode_layout(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
     let left = Vertical::new([
-        Spatial3DView::new("robot").with_origin("world").into(),
+        robot_view(eyes),
         TextLogView::new("events").with_origin("events").into(),
     ])
     .with_row_shares([3.0, 1.0]);
@@ -57,12 +155,15 @@ fn episode_layout() -> ContainerLike {
 }
 
 /// Layout of `rall play` recordings.
-pub fn play_blueprint() -> Blueprint {
-    Blueprint::new(episode_layout()).with_auto_views(false)
+pub fn play_blueprint() -> Layout {
+    let mut eyes = Vec::new();
+    let blueprint = Blueprint::new(episode_layout(&mut eyes)).with_auto_views(false);
+    Layout { blueprint, eyes }
 }
 
 /// Layout of training recordings: the metrics, and the evaluation episodes.
-pub fn train_blueprint() -> Blueprint {
+pub fn train_blueprint() -> Layout {
+    let mut eyes = Vec::new();
     let metrics = Vertical::new([
         Horizontal::new([
             series("reward terms (per episode)", "train/reward_terms"),
@@ -85,28 +186,21 @@ pub fn train_blueprint() -> Blueprint {
         .into(),
     ])
     .with_name("training");
-    let eval = Vertical::new([episode_layout()]).with_name("evaluation episodes");
-    Blueprint::new(Tabs::new([metrics.into(), eval.into()])).with_auto_views(false)
+    let eval = Vertical::new([episode_layout(&mut eyes)]).with_name("evaluation episodes");
+    let blueprint = Blueprint::new(Tabs::new([metrics.into(), eval.into()])).with_auto_views(false);
+    Layout { blueprint, eyes }
 }
 
 /// Writes `blueprint` for `application_id` as an `.rbl` file.
 pub fn write_blueprint_file(
     path: &Path,
     application_id: &'static str,
-    blueprint: Blueprint,
+    layout: Layout,
 ) -> Result<()> {
     let rec = rerun::RecordingStreamBuilder::new(application_id)
         .blueprint()
         .save(path)
         .with_context(|| format!("opening {}", path.display()))?;
-    blueprint
-        .send(
-            &rec,
-            BlueprintActivation {
-                make_active: true,
-                make_default: true,
-            },
-        )
-        .context("writing the blueprint")?;
+    layout.send(&rec).context("writing the blueprint")?;
     super::sink::finish_recording(rec)
 }

@@ -13,9 +13,9 @@
 //! | `plots/velocity/{vx,vy,yaw_rate}` | scalars `[command, measured]` (body frame) | every step |
 //! | `plots/torques` | 12 joint torques (N m) | every step |
 //! | `plots/contacts` | foot contact, leg `i` drawn at `i + 0.8 * contact` | every step |
-//! | `value/quantiles` | `BarChart` of `Z_tau(s)` on a midpoint tau grid (IQN only) | every step |
-//! | `value/stats` | scalars `[mean, CVaR_eta]` (scalar critic: `[V, V]`) | every step |
-//! | `value/iqr` | `Z_0.75(s) - Z_0.25(s)` | every step |
+//! | `value/quantiles` | `BarChart` of `Z_tau(s)` on a midpoint tau grid, bars `1/n` wide over [0, 1] (IQN only) | every [`VALUE_EVERY_FRAMES`] frames |
+//! | `value/stats` | scalars `[mean, CVaR_eta]` (scalar critic: `[V, V]`) | every [`VALUE_EVERY_FRAMES`] frames |
+//! | `value/iqr` | `Z_0.75(s) - Z_0.25(s)` | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `events` | `TextLog`: episodes, risk-threshold crossings, penalties, pushes | on events |
 //!
 //! Timelines: `sim_time` (seconds of simulated time, continuing across episodes),
@@ -47,6 +47,10 @@ use crate::sim::ObjKind;
 /// Steps buffered before the columns are sent (5 s at 50 Hz): every flush costs a
 /// chunk per entity, and the critic reads the whole batch at once.
 pub const DEFAULT_FLUSH_STEPS: usize = 250;
+/// By default the critic's readings (bar chart, mean/CVaR, IQR) are taken every this
+/// many frames (10 Hz at a 50 Hz policy): a viewer needs no per-step resolution of the
+/// value, and reading the critic was most of the logging cost.
+pub const VALUE_EVERY_FRAMES: usize = 5;
 /// Side of a terrain chunk in samples (8 m at 0.1 m).
 const TERRAIN_CHUNK_SAMPLES: usize = 80;
 /// Terrain chunks within this distance (m) of the trunk are logged.
@@ -71,8 +75,11 @@ struct Columns {
     contacts: Vec<f64>,
     arrows_origin: Vec<[f32; 3]>,
     arrows_vec: Vec<[f32; 3]>,
-    /// Observations of the frames (n x obs_dim), read by the critic at the flush.
+    /// Observations of every [`VALUE_EVERY_FRAMES`]-th frame (k x obs_dim), read by
+    /// the critic at the flush, with their times.
     obs: Vec<f32>,
+    value_time_s: Vec<f64>,
+    value_step: Vec<i64>,
     extra_timeline: Option<(&'static str, i64)>,
 }
 
@@ -146,6 +153,9 @@ pub struct EpisodeLogger {
     flush_steps: usize,
     time_s: f64,
     step: i64,
+    /// Frames recorded (the critic is read on every `value_every`-th).
+    frames: usize,
+    value_every: usize,
     prev_exceeded: [bool; NUM_RISK_TERMS],
     push_shown: bool,
     prev_base_vel_world: [f64; 3],
@@ -266,7 +276,10 @@ impl EpisodeLogger {
             rec.log_static(
                 "value/quantiles",
                 &rerun::BarChart::update_fields()
-                    .with_abscissa(rerun::datatypes::TensorData::from(probe.taus().to_vec())),
+                    .with_abscissa(rerun::datatypes::TensorData::from(probe.taus().to_vec()))
+                    // Bars sit at tau in (0, 1): without widths rerun draws each one
+                    // 1 wide and the 32 bars pile into one block over [0, 2].
+                    .with_widths(bar_widths(probe.taus())),
             )?;
         }
         let nb = bodies.len();
@@ -291,6 +304,8 @@ impl EpisodeLogger {
             flush_steps: DEFAULT_FLUSH_STEPS,
             time_s: 0.0,
             step: 0,
+            frames: 0,
+            value_every: VALUE_EVERY_FRAMES,
             prev_exceeded: [false; NUM_RISK_TERMS],
             push_shown: false,
             prev_base_vel_world: [0.0; 3],
@@ -304,6 +319,11 @@ impl EpisodeLogger {
     /// Steps buffered before sending (1 = send every step, for live viewing).
     pub fn set_flush_steps(&mut self, n: usize) {
         self.flush_steps = n.max(1);
+    }
+
+    /// Reads and logs the critic every `n` frames (1 = every policy step).
+    pub fn set_value_every_frames(&mut self, n: usize) {
+        self.value_every = n.max(1);
     }
 
     /// Tags every following row with a constant sequence value (e.g. `iteration`).
@@ -418,7 +438,12 @@ impl EpisodeLogger {
         c.arrows_origin.extend([origin, origin]);
         c.arrows_vec
             .extend([f32x3(cmd_world), [v[0] as f32, v[1] as f32, 0.0]]);
-        c.obs.extend_from_slice(obs);
+        if self.frames.is_multiple_of(self.value_every) {
+            c.obs.extend_from_slice(obs);
+            c.value_time_s.push(self.time_s);
+            c.value_step.push(self.step);
+        }
+        self.frames += 1;
         if c.len() >= self.flush_steps {
             self.flush()?;
         }
@@ -640,8 +665,16 @@ fn send_batch(
     if let Some((name, v)) = c.extra_timeline {
         index.push(TimeColumn::new_sequence(name, std::iter::repeat_n(v, n)));
     }
-    // The critic, once for the whole batch of frames.
+    // The critic, once for the whole batch of its frames.
     let readings = probe.read_batch_ac(ac, &c.obs);
+    let nv = readings.len();
+    let mut value_index = vec![
+        TimeColumn::new_duration_secs("sim_time", c.value_time_s),
+        TimeColumn::new_sequence("step", c.value_step),
+    ];
+    if let Some((name, v)) = c.extra_timeline {
+        value_index.push(TimeColumn::new_sequence(name, std::iter::repeat_n(v, nv)));
+    }
     let stats: Vec<f64> = readings
         .iter()
         .flat_map(|r| [r.mean as f64, r.distorted as f64])
@@ -676,8 +709,15 @@ fn send_batch(
     send("plots/velocity/yaw_rate", scalars(&c.wz, 2)?)?;
     send("plots/torques", scalars(&c.torques, c.torques.len() / n)?)?;
     send("plots/contacts", scalars(&c.contacts, 4)?)?;
-    send("value/stats", scalars(&stats, 2)?)?;
-    send("value/iqr", scalars(&iqr, 1)?)?;
+    let send_value = |path: &str, cols: Vec<rerun::SerializedComponentColumn>| -> Result<()> {
+        if nv > 0 {
+            rec.send_columns(path, value_index.clone(), cols)
+                .with_context(|| format!("logging {path}"))?;
+        }
+        Ok(())
+    };
+    send_value("value/stats", scalars(&stats, 2)?)?;
+    send_value("value/iqr", scalars(&iqr, 1)?)?;
     send(
         "world/velocity",
         rerun::Arrows3D::update_fields()
@@ -687,7 +727,7 @@ fn send_batch(
             .collect(),
     )?;
     if !probe.taus().is_empty() {
-        send(
+        send_value(
             "value/quantiles",
             rerun::BarChart::update_fields()
                 .with_many_values(
@@ -700,6 +740,27 @@ fn send_batch(
         )?;
     }
     Ok(())
+}
+
+/// Width of each bar of the quantile chart: the spacing of its tau grid (`1 / n`
+/// on the midpoint grid), so the bars tile [0, 1] side by side.
+pub fn bar_widths(taus: &[f32]) -> Vec<f32> {
+    let n = taus.len();
+    (0..n)
+        .map(|i| {
+            let lo = if i == 0 {
+                0.0
+            } else {
+                0.5 * (taus[i - 1] + taus[i])
+            };
+            let hi = if i + 1 == n {
+                1.0
+            } else {
+                0.5 * (taus[i] + taus[i + 1])
+            };
+            (hi - lo).max(0.0)
+        })
+        .collect()
 }
 
 fn f32x3(v: [f64; 3]) -> [f32; 3] {

@@ -20,7 +20,8 @@ pub mod train;
 pub mod value;
 
 pub use blueprint::{
-    play_blueprint, train_blueprint, write_blueprint_file, PLAY_APP_ID, TRAIN_APP_ID,
+    play_blueprint, train_blueprint, write_blueprint_file, Layout, FOLLOWED_ENTITY, PLAY_APP_ID,
+    TRAIN_APP_ID,
 };
 pub use episode::EpisodeLogger;
 pub use play::{play, run_episode, PlayOptions, PlayReport, PlayedEpisode, ViewerEnv};

@@ -28,6 +28,9 @@ pub struct PlayOptions {
     pub num_bars: usize,
     /// Steps buffered before the recording gets them.
     pub flush_steps: usize,
+    /// The critic (value chart, mean/CVaR, IQR) is read and logged every this many
+    /// frames (1: every policy step, as before issue 14).
+    pub value_every_frames: usize,
     /// An evaluation scenario by name (`rall eval`'s names, e.g. `ball+rough+push`)
     /// instead of the env config's own scene.
     pub scenario: Option<String>,
@@ -43,6 +46,7 @@ impl Default for PlayOptions {
             terrain_level: 0,
             num_bars: DEFAULT_NUM_BARS,
             flush_steps: super::episode::DEFAULT_FLUSH_STEPS,
+            value_every_frames: super::episode::VALUE_EVERY_FRAMES,
             scenario: None,
         }
     }
@@ -219,6 +223,7 @@ pub fn play(
             let probe = ValueProbe::new(learner, opts.num_bars);
             let mut l = EpisodeLogger::new(rec, venv.env.robot(), venv.ground.clone(), probe)?;
             l.set_flush_steps(opts.flush_steps);
+            l.set_value_every_frames(opts.value_every_frames);
             Some(l)
         }
         None => None,

@@ -33,6 +33,8 @@ pub struct RrdSummary {
     pub blueprint_chunks: usize,
     /// Blueprint activation commands.
     pub blueprint_activations: usize,
+    /// Entity paths of the blueprint stores (e.g. `/view/<id>/EyeControls3D`).
+    pub blueprint_entities: BTreeSet<String>,
 }
 
 impl RrdSummary {
@@ -61,11 +63,12 @@ pub fn summarize_rrd(path: &Path) -> Result<RrdSummary> {
                     .insert(info.info.application_id().to_string());
             }
             LogMsg::ArrowMsg(store, arrow) => {
+                let chunk = Chunk::from_arrow_msg(&arrow).context("decoding a chunk")?;
                 if store.kind() == StoreKind::Blueprint {
                     s.blueprint_chunks += 1;
+                    s.blueprint_entities.insert(chunk.entity_path().to_string());
                     continue;
                 }
-                let chunk = Chunk::from_arrow_msg(&arrow).context("decoding a chunk")?;
                 let e = s
                     .entities
                     .entry(chunk.entity_path().to_string())

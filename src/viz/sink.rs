@@ -89,11 +89,9 @@ pub fn open_recording(
     application_id: &'static str,
     recording_name: &str,
     target: &RerunTarget,
-    blueprint: rerun::blueprint::Blueprint,
+    layout: super::blueprint::Layout,
 ) -> Result<RecordingStream> {
-    let builder = RecordingStreamBuilder::new(application_id)
-        .recording_name(recording_name)
-        .with_blueprint(blueprint);
+    let builder = RecordingStreamBuilder::new(application_id).recording_name(recording_name);
     let rec = match target {
         RerunTarget::Save(path) => {
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -129,6 +127,7 @@ pub fn open_recording(
                 .with_context(|| format!("connecting to the viewer at {hostport}"))?
         }
     };
+    layout.send(&rec)?;
     Ok(rec)
 }
 

@@ -1,0 +1,647 @@
+//! `rall export`: a checkpoint's policy as a standard ONNX model plus a JSON
+//! sidecar with everything a robot controller needs (observation layout and
+//! definitions, joint order and default pose, action law, PD gains, limits,
+//! rates) and reference observation/action pairs to check any runtime against.
+//!
+//! ONNX is written through the ONNX protobuf schema hand-declared as `prost`
+//! messages ([`onnx`]); no protoc, no new crate (prost 0.14.4 is rerun's).
+//!
+//! Network kinds: every exportable policy is a [`PolicyNet`] variant with its own
+//! graph builder, inputs and sidecar description. Today there is one, the
+//! Gaussian actor's mean. A history-based student (RMA: adaptation module +
+//! base policy) becomes a second variant with a `history` input
+//! (`batch x H x d`) next to `obs`; see [`PolicyNet`].
+
+pub mod onnx;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{bail, ensure, Context, Result};
+use serde_json::{json, Value};
+
+use crate::config::TrainConfig;
+use crate::env::observation::OBS_LAYOUT;
+use crate::env::{build_scene, Env, EnvConfig, ACT_DIM, OBS_DIM};
+use crate::learn::Learner;
+use crate::robot::Robot;
+use crate::runner::{load_policy, Progress};
+use onnx::{Dense, Dim};
+
+/// Version of the sidecar's JSON layout.
+pub const SIDECAR_VERSION: u32 = 1;
+/// Name of the observation input in every exported graph.
+pub const OBS_INPUT: &str = "obs";
+/// Name of the action output.
+pub const ACTION_OUTPUT: &str = "actions";
+/// Tolerance the test suite and `.ci` hold runtimes to on the reference pairs.
+pub const REFERENCE_TOLERANCE: f64 = 1e-5;
+
+/// What `rall export` does besides the checkpoint and output paths.
+#[derive(Debug, Clone)]
+pub struct ExportOptions {
+    /// Reference observation/action pairs to write (taken along a rollout).
+    pub reference_count: usize,
+    /// Seed of the reference rollout (commands, friction, mass).
+    pub seed: u64,
+}
+
+impl Default for ExportOptions {
+    fn default() -> Self {
+        ExportOptions {
+            reference_count: 8,
+            seed: 0,
+        }
+    }
+}
+
+/// What was written.
+#[derive(Debug, Clone)]
+pub struct ExportReport {
+    pub onnx_path: PathBuf,
+    pub sidecar_path: PathBuf,
+    pub iteration: usize,
+    pub config_hash: String,
+    pub onnx_bytes: usize,
+    pub reference_count: usize,
+}
+
+/// An observation normaliser `(obs - mean) / std`, folded into the first layer.
+/// rall trains without one today (identity); the fold keeps the export exact
+/// when a normaliser is added.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObsNormalizer {
+    pub mean: Vec<f32>,
+    pub std: Vec<f32>,
+}
+
+impl ObsNormalizer {
+    pub fn identity(dim: usize) -> Self {
+        ObsNormalizer {
+            mean: vec![0.0; dim],
+            std: vec![1.0; dim],
+        }
+    }
+
+    pub fn is_identity(&self) -> bool {
+        self.mean.iter().all(|&m| m == 0.0) && self.std.iter().all(|&s| s == 1.0)
+    }
+
+    /// Folds the normaliser into `layer` (`y = ((x - m) / s) W + b`):
+    /// `W'[i, j] = W[i, j] / s[i]`, `b'[j] = b[j] - sum_i m[i] / s[i] W[i, j]`.
+    pub fn fold_into(&self, layer: &mut Dense) -> Result<()> {
+        ensure!(
+            self.mean.len() == layer.inp && self.std.len() == layer.inp,
+            "normaliser of size {} / {} does not fit a layer with {} inputs",
+            self.mean.len(),
+            self.std.len(),
+            layer.inp
+        );
+        if let Some(i) = self.std.iter().position(|&s| !(s.is_finite() && s > 0.0)) {
+            bail!("normaliser std[{i}] = {} is not positive", self.std[i]);
+        }
+        let mut shift = vec![0.0f64; layer.out];
+        for i in 0..layer.inp {
+            let inv = 1.0 / self.std[i] as f64;
+            let row = &mut layer.weight[i * layer.out..(i + 1) * layer.out];
+            for (j, w) in row.iter_mut().enumerate() {
+                shift[j] += self.mean[i] as f64 * inv * *w as f64;
+                *w = (*w as f64 * inv) as f32;
+            }
+        }
+        for (b, s) in layer.bias.iter_mut().zip(shift) {
+            *b = (*b as f64 - s) as f32;
+        }
+        Ok(())
+    }
+}
+
+/// An exportable policy network. One variant per network kind, each with its
+/// own graph inputs and sidecar description.
+///
+/// An RMA student adds a variant `Student { adaptation, base }`: inputs `obs`
+/// (`batch x 48`) and `history` (`batch x H x 60`, oldest first, each row the
+/// policy observation and the action of that step), graph = adaptation module
+/// (per-step embedding, 1-D convolutions) -> latent (8), concatenated with
+/// `obs` -> base policy MLP -> `actions`; the sidecar then documents the
+/// history's order, length and reset value.
+#[derive(Debug, Clone)]
+pub enum PolicyNet {
+    /// The Gaussian actor's mean: `actions = MLP(obs)`, ELU between layers.
+    GaussianMean { layers: Vec<Dense> },
+}
+
+impl PolicyNet {
+    /// The deployable network of a learner (its actor's mean), with `norm` folded in.
+    pub fn from_learner(learner: &Learner, norm: &ObsNormalizer) -> Result<PolicyNet> {
+        let actor = &learner.actor_critic().actor;
+        let ps = &actor.params;
+        let find = |name: &str| ps.entries.iter().find(|e| e.name == name);
+        let mut layers = Vec::new();
+        while let Some(w) = find(&format!("l{}.weight", layers.len())) {
+            let i = layers.len();
+            let b = find(&format!("l{i}.bias"))
+                .with_context(|| format!("actor layer {i} has a weight but no bias"))?;
+            ensure!(
+                w.shape.len() == 2 && b.shape == [w.shape[1]],
+                "actor.l{i}: weight {:?} and bias {:?} do not form a dense layer",
+                w.shape,
+                b.shape
+            );
+            layers.push(Dense {
+                inp: w.shape[0],
+                out: w.shape[1],
+                weight: ps.data[w.offset..w.offset + w.len()].to_vec(),
+                bias: ps.data[b.offset..b.offset + b.len()].to_vec(),
+            });
+        }
+        ensure!(
+            !layers.is_empty(),
+            "the actor has no layers (actor.l0.weight)"
+        );
+        for (i, pair) in layers.windows(2).enumerate() {
+            ensure!(
+                pair[0].out == pair[1].inp,
+                "actor.l{i} has {} outputs but actor.l{} takes {} inputs",
+                pair[0].out,
+                i + 1,
+                pair[1].inp
+            );
+        }
+        let (inp, out) = (layers[0].inp, layers[layers.len() - 1].out);
+        ensure!(
+            inp == actor.obs_dim && out == actor.act_dim,
+            "actor maps {inp} -> {out}, expected {} -> {}",
+            actor.obs_dim,
+            actor.act_dim
+        );
+        norm.fold_into(&mut layers[0])?;
+        Ok(PolicyNet::GaussianMean { layers })
+    }
+
+    pub fn kind(&self) -> &'static str {
+        match self {
+            PolicyNet::GaussianMean { .. } => "gaussian_actor_mean",
+        }
+    }
+
+    /// Graph inputs: (name, shape).
+    pub fn inputs(&self) -> Vec<(&'static str, Vec<Dim>)> {
+        match self {
+            PolicyNet::GaussianMean { layers } => vec![(
+                OBS_INPUT,
+                vec![
+                    Dim::Named(onnx::BATCH_DIM.into()),
+                    Dim::Fixed(layers[0].inp),
+                ],
+            )],
+        }
+    }
+
+    pub fn act_dim(&self) -> usize {
+        match self {
+            PolicyNet::GaussianMean { layers } => layers[layers.len() - 1].out,
+        }
+    }
+
+    /// The ONNX graph.
+    pub fn graph(&self) -> onnx::GraphProto {
+        let mut g = onnx::GraphProto {
+            name: format!("rall_{}", self.kind()),
+            ..Default::default()
+        };
+        for (name, dims) in self.inputs() {
+            g.input.push(onnx::float_value_info(
+                name,
+                &dims,
+                "policy observation, see the JSON sidecar",
+            ));
+        }
+        match self {
+            PolicyNet::GaussianMean { layers } => {
+                onnx::push_mlp(&mut g, "actor.", layers, OBS_INPUT, ACTION_OUTPUT);
+            }
+        }
+        g.output.push(onnx::float_value_info(
+            ACTION_OUTPUT,
+            &[
+                Dim::Named(onnx::BATCH_DIM.into()),
+                Dim::Fixed(self.act_dim()),
+            ],
+            "raw action (before clip and scale); feed it back as previous_action",
+        ));
+        g
+    }
+
+    /// The checkpoint tensors this network came from, and how it computes.
+    fn describe(&self) -> Value {
+        match self {
+            PolicyNet::GaussianMean { layers } => {
+                let tensors: Vec<Value> = layers
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(i, l)| {
+                        [
+                            json!({"name": format!("actor.l{i}.weight"), "shape": [l.inp, l.out],
+                                   "layout": "in x out, row-major (y = x W + b)"}),
+                            json!({"name": format!("actor.l{i}.bias"), "shape": [l.out]}),
+                        ]
+                    })
+                    .collect();
+                let n = layers.len();
+                json!({
+                    "kind": self.kind(),
+                    "formula": format!(
+                        "h_0 = obs; h_(i+1) = elu(h_i W_i + b_i) for i < {last}; actions = h_{last} W_{last} + b_{last}",
+                        last = n - 1
+                    ),
+                    "activation": "ELU with alpha 1 (elu(x) = x if x > 0 else exp(x) - 1) between layers, none after the last",
+                    "layer_sizes": std::iter::once(layers[0].inp).chain(layers.iter().map(|l| l.out)).collect::<Vec<_>>(),
+                    "checkpoint_tensors": tensors,
+                    "not_exported": "actor.log_std (the Gaussian's log standard deviation; deployment uses the mean), critic.*, adam.*, lr",
+                    "onnx_ops": "Gemm (transB = 0, so W is used as stored) and Elu (alpha 1); initializers named like the checkpoint tensors",
+                })
+            }
+        }
+    }
+
+    /// Reference forward pass in f64 (what the ONNX graph computes).
+    pub fn forward_f64(&self, obs: &[f32]) -> Vec<f64> {
+        match self {
+            PolicyNet::GaussianMean { layers } => {
+                let mut x: Vec<f64> = obs.iter().map(|&v| v as f64).collect();
+                for (i, l) in layers.iter().enumerate() {
+                    let mut y: Vec<f64> = l.bias.iter().map(|&b| b as f64).collect();
+                    for (k, xv) in x.iter().enumerate() {
+                        for (j, yv) in y.iter_mut().enumerate() {
+                            *yv += xv * l.weight[k * l.out + j] as f64;
+                        }
+                    }
+                    if i + 1 < layers.len() {
+                        for v in &mut y {
+                            if *v <= 0.0 {
+                                *v = v.exp_m1();
+                            }
+                        }
+                    }
+                    x = y;
+                }
+                x
+            }
+        }
+    }
+}
+
+/// FNV-1a (64 bit) of `text`, as 16 hex digits.
+pub fn fnv1a64_hex(text: &str) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in text.bytes() {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    format!("{h:016x}")
+}
+
+/// The sidecar path beside an ONNX path: `OUT.onnx` -> `OUT.json`.
+pub fn sidecar_path(onnx_path: &Path) -> PathBuf {
+    onnx_path.with_extension("json")
+}
+
+/// Noise-free definition of each observation field (by `OBS_LAYOUT` name).
+fn field_definition(name: &str) -> Option<(&'static str, &'static str)> {
+    Some(match name {
+        "base_lin_vel_body" => ("m/s", "linear velocity of the trunk frame origin (the trunk box centre = site `imu` in mjcf/aliengo.xml, NOT the centre of mass), expressed in the trunk (body) frame: x forward, y left, z up. In MuJoCo: R(quat)^T qvel[0:3] of the free joint. A world-frame velocity here makes the robot fall."),
+        "base_ang_vel_body" => ("rad/s", "angular velocity of the trunk in the trunk (body) frame (x roll rate, y pitch rate, z yaw rate), i.e. the IMU gyroscope. In MuJoCo: qvel[3:6] of the free joint."),
+        "gravity_body" => ("unit vector (dimensionless)", "direction of gravity in the trunk frame, a UNIT vector: (0, 0, -1) when the trunk is level, R(quat)^T (0, 0, -1). Not m/s^2: an accelerometer reading must be normalised (and negated: an accelerometer at rest reads +g up)."),
+        "command_vx_vy_yaw" => ("m/s, m/s, rad/s", "the velocity command: forward and lateral speed in the trunk frame (compared with base_lin_vel_body x, y) and yaw rate (compared with base_ang_vel_body z). Planar commands of norm below commands.zero_below_mps were zeroed in training."),
+        "joint_pos_minus_default" => ("rad", "joint angle minus that joint's default angle, joints in `joints.names` order (FR, FL, RR, RL x hip, thigh, calf), angles in the MJCF/Unitree convention (same zero and sign)."),
+        "joint_vel" => ("rad/s", "joint velocity, joints in `joints.names` order."),
+        "previous_action" => ("raw network output", "the `actions` output of the previous policy step exactly as the network returned it: BEFORE the clip and BEFORE the action scale (not the target angle, not the scaled offset). Zeros at the first step of an episode."),
+        _ => return None,
+    })
+}
+
+/// Observation fields with offsets, scales and definitions, from the env config.
+fn observation_json(env: &EnvConfig) -> Result<Value> {
+    let o = &env.observation;
+    let mut offset = 0;
+    let mut fields = Vec::new();
+    for (name, len) in OBS_LAYOUT {
+        let (scale, noise): (Vec<f64>, f64) = match name {
+            "base_lin_vel_body" => (vec![o.scales.lin_vel; 3], o.noise_std.lin_vel),
+            "base_ang_vel_body" => (vec![o.scales.ang_vel; 3], o.noise_std.ang_vel),
+            "gravity_body" => (vec![o.scales.gravity; 3], o.noise_std.gravity),
+            "command_vx_vy_yaw" => (o.command_scale.to_vec(), 0.0),
+            "joint_pos_minus_default" => (vec![o.scales.dof_pos; len], o.noise_std.dof_pos),
+            "joint_vel" => (vec![o.scales.dof_vel; len], o.noise_std.dof_vel),
+            "previous_action" => (vec![1.0; len], 0.0),
+            _ => bail!("observation field `{name}` has no scale in the exporter"),
+        };
+        let (units, definition) = field_definition(name).with_context(|| {
+            format!("observation field `{name}` has no definition in the exporter")
+        })?;
+        fields.push(json!({
+            "name": name,
+            "offset": offset,
+            "length": len,
+            "scale": scale,
+            "units": units,
+            "definition": definition,
+            "training_noise_std_physical_units": noise * o.noise_level,
+        }));
+        offset += len;
+    }
+    ensure!(
+        offset == OBS_DIM,
+        "observation layout sums to {offset}, expected {OBS_DIM}"
+    );
+    Ok(json!({
+        "dim": OBS_DIM,
+        "order": OBS_LAYOUT.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+        "formula": format!("obs[offset + k] = clip(value[k] * scale[k], -{c}, {c}) as float32, fields concatenated in `order`", c = o.clip),
+        "clip": o.clip,
+        "fields": fields,
+        "noise": "rall adds Gaussian noise (training_noise_std_physical_units * scale) during training and `rall eval`; on the robot feed the noise-free values, the sensors add their own",
+    }))
+}
+
+/// Reference pairs from a rollout of the policy's mean on flat ground (noise off).
+fn reference_pairs(
+    learner: &Learner,
+    env_cfg: &EnvConfig,
+    count: usize,
+    seed: u64,
+) -> Result<Vec<f32>> {
+    let mut cfg = crate::eval::tracking::tracking_env(env_cfg);
+    cfg.observation.noise_level = 0.0;
+    let scene = build_scene(&cfg, seed)?;
+    let mut env = Env::new(Arc::new(cfg), &scene.model, None, seed, 0)?;
+    let mut obs = vec![0.0f32; OBS_DIM];
+    let mut final_obs = vec![0.0f32; OBS_DIM];
+    env.reset(&mut obs)?;
+    let every = 10;
+    let mut out = Vec::with_capacity(count * OBS_DIM);
+    for step in 0..count * every {
+        if step % every == 0 {
+            out.extend_from_slice(&obs);
+        }
+        let action = learner.act_mean(&obs);
+        if env.step(&action, &mut obs, &mut final_obs).done {
+            env.reset(&mut obs)?;
+        }
+    }
+    Ok(out)
+}
+
+/// Writes `onnx_path` and its sidecar (`.json` beside it) for the checkpoint at `checkpoint`.
+pub fn export(checkpoint: &Path, onnx_path: &Path, opts: &ExportOptions) -> Result<ExportReport> {
+    ensure!(
+        onnx_path.extension().is_some_and(|e| e == "onnx"),
+        "--onnx {}: the output must end in .onnx (the sidecar goes beside it as .json)",
+        onnx_path.display()
+    );
+    ensure!(
+        opts.reference_count > 0,
+        "at least one reference observation is needed"
+    );
+    let loaded = load_policy(checkpoint)?;
+    export_learner(
+        &loaded.learner,
+        &loaded.config,
+        &loaded.progress,
+        checkpoint,
+        onnx_path,
+        opts,
+    )
+}
+
+/// [`export`] from an already loaded learner.
+pub fn export_learner(
+    learner: &Learner,
+    config: &TrainConfig,
+    progress: &Progress,
+    checkpoint: &Path,
+    onnx_path: &Path,
+    opts: &ExportOptions,
+) -> Result<ExportReport> {
+    let env = &config.env;
+    let norm = ObsNormalizer::identity(learner.obs_dim());
+    let net = PolicyNet::from_learner(learner, &norm)?;
+    ensure!(
+        net.act_dim() == ACT_DIM,
+        "policy outputs {} actions, the robot has {ACT_DIM}",
+        net.act_dim()
+    );
+    let scene = build_scene(env, config.runner.seed)?;
+    let robot = Robot::new(scene.model, env.control.clone())?;
+    let names = robot.layout.joint_names.clone();
+    let default_q = robot.default_q_rad;
+    let c = &env.control;
+    let config_hash = fnv1a64_hex(&config.to_toml());
+
+    let ref_obs = reference_pairs(learner, env, opts.reference_count, opts.seed)?;
+    let ref_act = learner.act_mean(&ref_obs);
+    let rows =
+        |v: &[f32], d: usize| -> Vec<Vec<f32>> { v.chunks_exact(d).map(<[f32]>::to_vec).collect() };
+
+    let by_name = |vals: &dyn Fn(usize) -> f64| -> serde_json::Map<String, Value> {
+        names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.clone(), json!(vals(i))))
+            .collect()
+    };
+    let inputs: Vec<Value> = net
+        .inputs()
+        .iter()
+        .map(|(n, dims)| json!({"name": n, "dtype": "float32", "shape": dims_json(dims)}))
+        .collect();
+    let file_name = |p: &Path| p.file_name().map(|f| f.to_string_lossy().into_owned());
+    let sidecar = json!({
+        "format": "rall-onnx-sidecar",
+        "format_version": SIDECAR_VERSION,
+        "onnx_file": file_name(onnx_path),
+        "checkpoint": {
+            "file": file_name(checkpoint),
+            "iteration": progress.iteration,
+            "total_env_steps": progress.total_env_steps,
+            "config_hash": config_hash,
+            "config_hash_algorithm": "FNV-1a 64-bit over the checkpoint's run config re-serialised as TOML (rall's TrainConfig::to_toml)",
+            "rall_version": env!("CARGO_PKG_VERSION"),
+        },
+        "onnx": {
+            "opset": onnx::OPSET,
+            "ir_version": onnx::IR_VERSION,
+            "inputs": inputs,
+            "outputs": [{"name": ACTION_OUTPUT, "dtype": "float32", "shape": [onnx::BATCH_DIM, net.act_dim()],
+                         "meaning": "raw action a (the Gaussian policy's mean): not clipped, not scaled"}],
+            "batch_dimension": "dynamic (`batch`); a controller feeds batch 1",
+            "normalizer": {"kind": if norm.is_identity() { "identity" } else { "folded" },
+                           "note": "rall trains without an observation normaliser: the network takes the scaled observation below as is. (A normaliser, if one is added, is folded into the first layer of the ONNX graph.)"},
+        },
+        "network": net.describe(),
+        "observation": observation_json(env)?,
+        "joints": {
+            "names": &names,
+            "order": "Unitree SDK: FR, FL, RR, RL legs x (hip, thigh, calf); index i of every per-joint array below and of the observation and action",
+            "default_angles_rad": by_name(&|i| default_q[i]),
+            "default_angles_rad_in_order": default_q.to_vec(),
+            "source": format!("keyframe `{}` of {}", c.default_keyframe, env.robot_mjcf),
+            "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
+        },
+        "action": {
+            "dim": ACT_DIM,
+            "clip": c.clip_actions,
+            "scale_rad": c.action_scale_rad,
+            "target_law": format!("q_target[i] = default_angles_rad[i] + {s} * clip(a[i], -{k}, {k})   (rad), held for one policy step", s = c.action_scale_rad, k = c.clip_actions),
+            "previous_action": "observation field previous_action = the raw a returned at the previous policy step (before clip and scale)",
+        },
+        "pd": {
+            "kp_nm_per_rad": c.kp_nm_per_rad,
+            "kd_nm_s_per_rad": c.kd_nm_s_per_rad,
+            "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
+            "law": format!("every physics step (every {dt} s): tau[i] = clip({kp} * (q_target[i] - q[i]) - {kd} * qdot[i], -limit[i], limit[i]) with fresh q, qdot; desired joint velocity 0, no feed-forward torque", dt = c.physics_dt_s, kp = c.kp_nm_per_rad, kd = c.kd_nm_s_per_rad),
+            "on_motor_drivers": "a driver that runs its own PD gets q_des = q_target, dq_des = 0, Kp, Kd as above, tau_ff = 0, and its torque limit set to torque_limits_nm",
+        },
+        "rates": {
+            "physics_dt_s": c.physics_dt_s,
+            "pd_rate_hz": 1.0 / c.physics_dt_s,
+            "decimation": c.decimation,
+            "policy_dt_s": c.policy_dt_s(),
+            "policy_rate_hz": 1.0 / c.policy_dt_s(),
+        },
+        "control_loop": [
+            format!("at {:.0} Hz: read the trunk state (body-frame linear and angular velocity, orientation) and the 12 joint angles and velocities", 1.0 / c.policy_dt_s()),
+            "build obs (1 x 48) field by field as in `observation` (scale, then clip), with previous_action = the raw network output of the previous step (zeros at start)",
+            "a = onnx(obs)[0]  (12 raw values); keep a for the next observation",
+            "q_target = default_angles_rad + scale_rad * clip(a, -clip, clip)",
+            format!("until the next policy step, every {} s: tau = clip(kp (q_target - q) - kd qdot, +-torque limit), sent to the motors in `joints.names` order", c.physics_dt_s),
+        ],
+        "reference": {
+            "description": format!("{} noise-free observations along a rollout of this policy on flat ground in rall (every 10th policy step), with the actions rall computes for them; a runtime feeding `observations` as one batch must return `actions` within the tolerance", ref_obs.len() / OBS_DIM),
+            "tolerance_abs": REFERENCE_TOLERANCE,
+            "observations": rows(&ref_obs, OBS_DIM),
+            "actions": rows(&ref_act, ACT_DIM),
+        },
+    });
+
+    let metadata = vec![
+        (
+            "rall.sidecar".to_string(),
+            file_name(&sidecar_path(onnx_path)).unwrap_or_default(),
+        ),
+        ("rall.iteration".to_string(), progress.iteration.to_string()),
+        ("rall.config_hash".to_string(), config_hash.clone()),
+        (
+            "rall.obs_layout".to_string(),
+            crate::env::observation::layout_string(),
+        ),
+    ];
+    let model = onnx::model(
+        net.graph(),
+        "rall policy: obs (batch x 48) -> raw actions (batch x 12); see the JSON sidecar for the controller",
+        &metadata,
+    );
+    let bytes = onnx::encode(&model);
+    if let Some(dir) = onnx_path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(onnx_path, &bytes)
+        .with_context(|| format!("writing {}", onnx_path.display()))?;
+    let side = sidecar_path(onnx_path);
+    let text = serde_json::to_string_pretty(&sidecar).context("serialising the sidecar")?;
+    std::fs::write(&side, text + "\n").with_context(|| format!("writing {}", side.display()))?;
+    Ok(ExportReport {
+        onnx_path: onnx_path.to_path_buf(),
+        sidecar_path: side,
+        iteration: progress.iteration,
+        config_hash,
+        onnx_bytes: bytes.len(),
+        reference_count: ref_obs.len() / OBS_DIM,
+    })
+}
+
+fn dims_json(dims: &[Dim]) -> Vec<Value> {
+    dims.iter()
+        .map(|d| match d {
+            Dim::Fixed(n) => json!(n),
+            Dim::Named(s) => json!(s),
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layer(inp: usize, out: usize, seed: u32) -> Dense {
+        let v = |k: usize| {
+            ((k as u32).wrapping_mul(2_654_435_761).wrapping_add(seed) % 1000) as f32 / 500.0 - 1.0
+        };
+        Dense {
+            inp,
+            out,
+            weight: (0..inp * out).map(v).collect(),
+            bias: (0..out).map(|k| v(k + 7)).collect(),
+        }
+    }
+
+    #[test]
+    fn folding_a_normaliser_equals_normalising_first() {
+        let layers = vec![layer(4, 5, 1), layer(5, 3, 2)];
+        let norm = ObsNormalizer {
+            mean: vec![0.5, -1.0, 2.0, 0.0],
+            std: vec![2.0, 0.5, 1.0, 4.0],
+        };
+        let x = [0.3f32, -0.7, 1.9, 5.0];
+        let normalised: Vec<f32> = x
+            .iter()
+            .zip(norm.mean.iter().zip(&norm.std))
+            .map(|(v, (m, s))| (v - m) / s)
+            .collect();
+        let plain = PolicyNet::GaussianMean {
+            layers: layers.clone(),
+        };
+        let mut folded_layers = layers;
+        norm.fold_into(&mut folded_layers[0]).unwrap();
+        let folded = PolicyNet::GaussianMean {
+            layers: folded_layers,
+        };
+        let a = plain.forward_f64(&normalised);
+        let b = folded.forward_f64(&x);
+        for (a, b) in a.iter().zip(&b) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        assert!(!norm.is_identity());
+        assert!(ObsNormalizer::identity(3).is_identity());
+    }
+
+    #[test]
+    fn a_bad_normaliser_is_refused() {
+        let mut l = layer(2, 2, 3);
+        let bad = ObsNormalizer {
+            mean: vec![0.0; 2],
+            std: vec![1.0, 0.0],
+        };
+        let err = bad.fold_into(&mut l).unwrap_err().to_string();
+        assert!(err.contains("std[1]"), "{err}");
+        let short = ObsNormalizer::identity(3);
+        assert!(short.fold_into(&mut l).is_err());
+    }
+
+    #[test]
+    fn every_observation_field_has_a_definition() {
+        for (name, _) in OBS_LAYOUT {
+            assert!(field_definition(name).is_some(), "{name}");
+        }
+        let v = observation_json(&EnvConfig::default()).unwrap();
+        assert_eq!(v["fields"].as_array().unwrap().len(), OBS_LAYOUT.len());
+        assert_eq!(v["fields"][6]["offset"], 36);
+    }
+
+    #[test]
+    fn fnv_matches_the_reference_vectors() {
+        assert_eq!(fnv1a64_hex(""), "cbf29ce484222325");
+        assert_eq!(fnv1a64_hex("a"), "af63dc4c8601ec8c");
+    }
+}
