@@ -5,9 +5,7 @@ use std::sync::Arc;
 
 use rall::env::config::PushConfig;
 use rall::env::terrain::TerrainKind;
-use rall::env::{
-    build_scene, Env, EnvConfig, EpisodeEnd, ModelSharing, VecEnv, ACT_DIM, OBS_DIM,
-};
+use rall::env::{build_scene, Env, EnvConfig, EpisodeEnd, ModelSharing, VecEnv, ACT_DIM, OBS_DIM};
 use rall::sim::ObjKind;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -301,7 +301,9 @@ impl Env {
         {
             *g = [friction.unwrap_or(base[0]), base[1], base[2]];
         }
-        params.body_mass_kg_mut().copy_from_slice(&self.base_body_mass_kg);
+        params
+            .body_mass_kg_mut()
+            .copy_from_slice(&self.base_body_mass_kg);
         params.body_mass_kg_mut()[trunk] += added;
         let subtree = params.body_subtree_mass_kg_mut();
         subtree.copy_from_slice(&self.base_subtree_mass_kg);
@@ -603,7 +605,8 @@ impl Env {
                             penalised[g] = true;
                             s.penalised_contacts += 1;
                         }
-                        if r.layout.geom_parts[g] == Part::Trunk && r.model().geom_body(other) == 0 {
+                        if r.layout.geom_parts[g] == Part::Trunk && r.model().geom_body(other) == 0
+                        {
                             s.trunk_on_ground = true;
                         }
                     }

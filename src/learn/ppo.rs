@@ -9,10 +9,10 @@ use super::nets::{IqnCache, MlpCache};
 use super::risk::{midpoint_taus, quantile_huber_loss};
 use super::storage::{gae, next_values, quantile_targets, Rollout};
 use anyhow::Result;
-use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 /// Learning-rate schedule.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -224,7 +224,14 @@ fn scale(g: &mut [f32], s: f32) {
 }
 
 /// Clips the gradients as `mode` says; returns whether anything was scaled.
-fn clip_grads(mode: GradClip, max_norm: f32, g_actor: &mut [f32], g_critic: &mut [f32], sq_a: f64, sq_c: f64) -> bool {
+fn clip_grads(
+    mode: GradClip,
+    max_norm: f32,
+    g_actor: &mut [f32],
+    g_critic: &mut [f32],
+    sq_a: f64,
+    sq_c: f64,
+) -> bool {
     match mode {
         GradClip::Global => {
             let norm = (sq_a + sq_c).sqrt() as f32;
@@ -474,20 +481,21 @@ pub fn update(
             // ---- backward ----
             ws.g_actor.fill(0.0);
             ws.g_critic.fill(0.0);
-            ac.actor
-                .backward(&mut ws.g_actor, &ws.obs, b, &mut ws.actor_cache, &mut ws.d_mu);
+            ac.actor.backward(
+                &mut ws.g_actor,
+                &ws.obs,
+                b,
+                &mut ws.actor_cache,
+                &mut ws.d_mu,
+            );
             let off = ac.actor.log_std_offset();
             for (g, d) in ws.g_actor[off..off + ad].iter_mut().zip(&ws.d_log_std) {
                 *g += d;
             }
             match &ac.critic {
-                Critic::Iqn(c) => c.backward(
-                    &mut ws.g_critic,
-                    &ws.obs,
-                    b,
-                    &mut ws.iqn_cache,
-                    &ws.d_value,
-                ),
+                Critic::Iqn(c) => {
+                    c.backward(&mut ws.g_critic, &ws.obs, b, &mut ws.iqn_cache, &ws.d_value)
+                }
                 Critic::Scalar(c) => c.backward(
                     &mut ws.g_critic,
                     &ws.obs,

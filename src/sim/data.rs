@@ -15,6 +15,9 @@ struct Shape {
     nu: i32,
     nbody: i32,
     ngeom: i32,
+    /// Arena capacities (`<size>`), for [`Data::arena_use`].
+    nconmax: i32,
+    njmax: i32,
 }
 
 impl Shape {
@@ -27,6 +30,8 @@ impl Shape {
             nu: m.nu,
             nbody: m.nbody,
             ngeom: m.ngeom,
+            nconmax: m.nconmax,
+            njmax: m.njmax,
         }
     }
 }
@@ -274,9 +279,8 @@ impl Data {
         self.check_model(model)?;
         let key = model.require_id(ObjKind::Key, name)?;
         // SAFETY: matching model family, key id in range.
-        let rc = unsafe {
-            shim::rall_mj_resetDataKeyframe(model.raw(), self.ptr.as_ptr(), key as i32)
-        };
+        let rc =
+            unsafe { shim::rall_mj_resetDataKeyframe(model.raw(), self.ptr.as_ptr(), key as i32) };
         self.guarded(rc, "mj_resetDataKeyframe")?;
         self.broken = None;
         self.warnings_seen = Warnings::default();
@@ -288,9 +292,9 @@ impl Data {
         let d = self.d();
         ArenaUse {
             contacts: d.maxuse_con.max(0) as usize,
-            contacts_max: d.nconmax.max(0) as usize,
+            contacts_max: self.shape.nconmax.max(0) as usize,
             constraints: d.maxuse_efc.max(0) as usize,
-            constraints_max: d.njmax.max(0) as usize,
+            constraints_max: self.shape.njmax.max(0) as usize,
             stack: d.maxuse_stack.max(0) as usize,
             stack_max: d.nstack.max(0) as usize,
         }
@@ -373,8 +377,7 @@ impl Data {
 
     /// Number of active contacts.
     pub fn ncon(&self) -> usize {
-        let d = self.d();
-        d.ncon.clamp(0, d.nconmax.max(0)) as usize
+        self.d().ncon.clamp(0, self.shape.nconmax.max(0)) as usize
     }
 
     /// The active contacts.

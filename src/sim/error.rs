@@ -21,10 +21,7 @@ pub enum SimError {
     /// MuJoCo raised an error inside `call`; it was left through the shim's
     /// `longjmp` (src/sim/shim.c), so MuJoCo did not carry on after it.
     #[error("MuJoCo error in {call}: {message}")]
-    MuJoCo {
-        call: &'static str,
-        message: String,
-    },
+    MuJoCo { call: &'static str, message: String },
     /// A MuJoCo error interrupted a call on this data; its state is undefined
     /// until the next reset.
     #[error("the data is unusable after a MuJoCo error ({0}); reset it first")]
