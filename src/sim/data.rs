@@ -179,8 +179,13 @@ impl Data {
             warnings_seen: Warnings::default(),
             broken: None,
         };
-        data.forward(model)?;
-        Ok(data)
+        // The model's reference pose (qpos0) may be no real state (legs through
+        // the ground, more contacts than the arena holds): its warnings are not
+        // the caller's concern, MuJoCo errors are. Resets start counting afresh.
+        match data.forward(model) {
+            Ok(()) | Err(SimError::Unstable { .. }) => Ok(data),
+            Err(e) => Err(e),
+        }
     }
 
     /// The family id of the model this data was made for.
