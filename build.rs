@@ -6,6 +6,9 @@
 use std::env;
 use std::path::{Path, PathBuf};
 
+/// C wrappers that let a MuJoCo error leave MuJoCo (src/sim/shim.c).
+const SHIM: &str = "src/sim/shim.c";
+
 const INSTALL_HINT: &str = "install them with: sudo apt-get install -y libmujoco-dev libclang-dev";
 
 fn main() {
@@ -24,6 +27,14 @@ fn main() {
         ));
     }
     println!("cargo:rerun-if-changed={}", header.display());
+    println!("cargo:rerun-if-changed={SHIM}");
+    // The setjmp/longjmp error escape (see the file's header): compiled before
+    // the link line for MuJoCo so the static shim resolves against it.
+    cc::Build::new()
+        .file(SHIM)
+        .include(&include_dir)
+        .warnings(true)
+        .compile("rall_mujoco_shim");
     println!("cargo:rustc-link-lib=dylib=mujoco");
 
     let bindings = bindgen::Builder::default()

@@ -10,6 +10,7 @@ use std::time::Instant;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rall::robot::{ControlConfig, Robot, NUM_JOINTS};
 use rall::sim::raw_bench::{raw_pd_steps, RawPd};
+use rall::sim::{Data, Model};
 
 const FLAT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/flat.xml");
 const STEPS: usize = 1000;
@@ -30,7 +31,25 @@ fn ours(robot: &mut Robot, n: usize) {
     }
 }
 
-fn raw(robot: &mut Robot, n: usize) {
+/// A settled robot's model copy and state, stepped on the raw FFI.
+struct RawRobot {
+    robot: Robot,
+    model: Model,
+    data: Data,
+}
+
+fn raw_robot() -> RawRobot {
+    let robot = settled_robot();
+    let model = robot.model_copy().unwrap();
+    let mut data = Data::new(&model).unwrap();
+    data.qpos_mut().copy_from_slice(robot.data().qpos());
+    data.qvel_mut().copy_from_slice(robot.data().qvel());
+    data.forward(&model).unwrap();
+    RawRobot { robot, model, data }
+}
+
+fn raw(r: &mut RawRobot, n: usize) {
+    let robot = &r.robot;
     let limits: [f64; NUM_JOINTS] = std::array::from_fn(|i| robot.control.torque_limit_nm(i));
     let pd = RawPd {
         qpos_adr: &robot.layout.qpos_adr,
@@ -41,14 +60,14 @@ fn raw(robot: &mut Robot, n: usize) {
         kd: robot.control.kd_nm_s_per_rad,
         limit_nm: &limits,
     };
-    raw_pd_steps(&robot.model, &mut robot.data, n, &pd);
+    raw_pd_steps(&r.model, &mut r.data, n, &pd).unwrap();
 }
 
 fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("physics_standing_aliengo_pd");
     g.throughput(Throughput::Elements(STEPS as u64));
-    let mut robot = settled_robot();
-    g.bench_function("raw_ffi_mj_step", |b| b.iter(|| raw(&mut robot, STEPS)));
+    let mut r = raw_robot();
+    g.bench_function("raw_ffi_mj_step", |b| b.iter(|| raw(&mut r, STEPS)));
     let mut robot = settled_robot();
     g.bench_function("safe_layer_step", |b| b.iter(|| ours(&mut robot, STEPS)));
     g.finish();
@@ -59,7 +78,7 @@ fn bench(c: &mut Criterion) {
 fn print_side_by_side() {
     let rounds = 30;
     let (mut t_raw, mut t_ours) = (0.0, 0.0);
-    let (mut a, mut b) = (settled_robot(), settled_robot());
+    let (mut a, mut b) = (raw_robot(), settled_robot());
     for _ in 0..rounds {
         let t = Instant::now();
         raw(&mut a, STEPS);

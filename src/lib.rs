@@ -4,6 +4,10 @@
 //! - [`sim`]: the only module with `unsafe`; safe types over MuJoCo 2.2.
 //! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
+//!
+//! `unsafe` is refused everywhere but in `sim` and the one audited GEMM
+//! wrapper (`learn::mat::gemm`): each carries an explicit allow.
+#![deny(unsafe_code)]
 
 #[cfg(feature = "sim")]
 pub mod env;
@@ -14,6 +18,7 @@ pub mod export;
 #[cfg(feature = "sim")]
 pub mod robot;
 #[cfg(feature = "sim")]
+#[allow(unsafe_code)]
 pub mod sim;
 
 pub mod learn;

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use rall::env::config::PushConfig;
 use rall::env::terrain::TerrainKind;
-use rall::env::{build_scene, Env, EnvConfig, EpisodeEnd, VecEnv, ACT_DIM, OBS_DIM};
+use rall::env::{build_scene, Env, EnvConfig, EpisodeEnd, ModelSharing, VecEnv, ACT_DIM, OBS_DIM};
 use rall::sim::ObjKind;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -22,7 +22,7 @@ fn random_actions(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
 }
 
 #[test]
-fn randomized_friction_and_mass_are_in_each_envs_own_model() {
+fn randomized_friction_and_mass_are_in_each_envs_own_parameters() {
     let c = cfg();
     let scene = build_scene(&c, 0).unwrap();
     let base_trunk =
@@ -30,21 +30,29 @@ fn randomized_friction_and_mass_are_in_each_envs_own_model() {
     let v = VecEnv::new(Arc::new(c), &scene.model, None, 8, 1, 7).unwrap();
     let mut frictions = Vec::new();
     for env in v.envs() {
-        let m = &env.robot().model;
+        let m = env.robot().model();
+        let p = env.robot().params();
+        // The model is shared; each env's randomisation is its parameters.
+        assert!(env.robot().shares_model());
         let draw = env.draw;
         let f = draw.friction.unwrap();
         assert!((0.5..=1.5).contains(&f));
         assert!((-0.5..=1.0).contains(&draw.added_base_mass_kg));
         let foot = m.require_id(ObjKind::Geom, "FL_foot").unwrap();
         let floor = m.require_id(ObjKind::Geom, "terrain").unwrap();
-        assert_eq!(m.geom_friction()[foot][0], f);
-        assert_eq!(m.geom_friction()[floor][0], f);
+        assert_eq!(p.geom_friction()[foot][0], f);
+        assert_eq!(p.geom_friction()[floor][0], f);
         let trunk = env.robot().layout.trunk_body;
-        assert!((m.body_mass_kg()[trunk] - (base_trunk + draw.added_base_mass_kg)).abs() < 1e-12);
+        assert!((p.body_mass_kg()[trunk] - (base_trunk + draw.added_base_mass_kg)).abs() < 1e-12);
+        let total: f64 = p.body_mass_kg().iter().sum();
         assert!(
-            (m.body_subtree_mass_kg()[0] - m.total_mass_kg()).abs() < 1e-9,
+            (p.body_subtree_mass_kg()[0] - total).abs() < 1e-9,
             "subtree mass kept consistent"
         );
+        // What the model copy of a per-env-model env would hold.
+        let copy = env.robot().model_copy().unwrap();
+        assert_eq!(copy.geom_friction()[foot][0], f);
+        assert!((copy.body_subtree_mass_kg()[0] - copy.total_mass_kg()).abs() < 1e-9);
         frictions.push(f);
     }
     frictions.dedup();
@@ -61,9 +69,9 @@ fn a_push_changes_the_base_velocity_by_the_sampled_amount() {
     let mut obs = [0.0f32; OBS_DIM];
     env.reset(&mut obs).unwrap();
     let a = env.robot().layout.root_dof_adr;
-    let before = env.robot().data.qvel()[a..a + 3].to_vec();
+    let before = env.robot().data().qvel()[a..a + 3].to_vec();
     let dv = env.random_kick(1.0);
-    let after = env.robot().data.qvel()[a..a + 3].to_vec();
+    let after = env.robot().data().qvel()[a..a + 3].to_vec();
     assert!(dv.iter().all(|d| d.abs() <= 1.0) && dv.iter().any(|d| d.abs() > 1e-3));
     assert!((after[0] - before[0] - dv[0]).abs() < 1e-12);
     assert!((after[1] - before[1] - dv[1]).abs() < 1e-12);
@@ -142,7 +150,7 @@ fn end_after_placing(roll_rad: f64, z_m: f64) -> Option<EpisodeEnd> {
     let (mut obs, mut fin) = ([0.0f32; OBS_DIM], [0.0f32; OBS_DIM]);
     env.reset(&mut obs).unwrap();
     let a = env.robot().layout.root_qpos_adr;
-    let q = env.robot_mut().data.qpos_mut();
+    let q = env.robot_mut().data_mut().qpos_mut();
     q[a + 2] = z_m;
     q[a + 3..a + 7].copy_from_slice(&[(roll_rad / 2.0).cos(), (roll_rad / 2.0).sin(), 0.0, 0.0]);
     for _ in 0..50 {
@@ -170,12 +178,29 @@ fn tilting_past_the_limit_or_landing_on_the_trunk_terminates() {
 }
 
 fn rollout(threads: usize, terrain: TerrainKind) -> (Vec<u32>, Vec<u32>) {
+    rollout_with(threads, terrain, ModelSharing::PerThread)
+}
+
+fn rollout_with(
+    threads: usize,
+    terrain: TerrainKind,
+    sharing: ModelSharing,
+) -> (Vec<u32>, Vec<u32>) {
     let mut c = cfg();
     c.terrain.kind = terrain;
     c.episode.length_s = 1.0;
     let c = Arc::new(c);
     let scene = build_scene(&c, 5).unwrap();
-    let mut v = VecEnv::new(c, &scene.model, scene.terrain.clone(), 6, threads, 11).unwrap();
+    let mut v = VecEnv::with_sharing(
+        c,
+        &scene.model,
+        scene.terrain.clone(),
+        6,
+        threads,
+        11,
+        sharing,
+    )
+    .unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let (mut obs_bits, mut rew_bits) = (Vec::new(), Vec::new());
     for _ in 0..120 {
@@ -227,4 +252,22 @@ fn terrain_levels_are_restored_for_a_resume() {
     let scene = build_scene(&flat, 5).unwrap();
     let mut f = VecEnv::new(flat, &scene.model, None, 2, 1, 1).unwrap();
     assert!(f.terrain_levels().is_none() && f.restore_terrain_levels(&[0, 0]).is_err());
+}
+
+#[test]
+fn a_shared_model_gives_the_trajectories_of_per_env_model_copies() {
+    // Randomised friction and mass differ per env and per episode (1 s episodes:
+    // several resets in 120 steps); with one model per thread each env's values
+    // are written in before its step. Bit-identical to a model copy per env,
+    // with one and two threads, on flat and rough ground.
+    for terrain in [TerrainKind::Flat, TerrainKind::Rough] {
+        let copies = rollout_with(1, terrain, ModelSharing::PerEnv);
+        for threads in [1, 2] {
+            let shared = rollout_with(threads, terrain, ModelSharing::PerThread);
+            assert!(
+                shared.0 == copies.0 && shared.1 == copies.1,
+                "{terrain:?}, {threads} thread(s): shared model differs from per-env copies"
+            );
+        }
+    }
 }

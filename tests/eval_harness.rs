@@ -205,8 +205,8 @@ fn platform_standing_still_is_not_reached_pushed_off_is_judged() {
         if s == 5 {
             let r = e.robot_mut();
             let a = r.layout.root_qpos_adr;
-            r.data.qpos_mut()[a] += 1.0;
-            r.data.forward(&r.model).unwrap();
+            r.data_mut().qpos_mut()[a] += 1.0;
+            r.forward().unwrap();
         }
     });
     assert!(

@@ -163,7 +163,7 @@ fn the_frozen_arm_holds_home_and_the_moving_arm_tracks_new_targets() {
         let resample = (p.arm_resample_s / 0.02).round() as usize;
         // Just before the first re-sampling: at home. 1 s after: tracking the new targets.
         assert_eq!(stand(&mut env, &mut hook, resample), resample);
-        let q: Vec<f64> = adr.iter().map(|&a| env.robot().data.qpos()[a]).collect();
+        let q: Vec<f64> = adr.iter().map(|&a| env.robot().data().qpos()[a]).collect();
         for (i, (q, h)) in q.iter().zip(&p.arm_home_rad).enumerate() {
             assert!(
                 (q - h).abs() < 0.05,
@@ -177,7 +177,7 @@ fn the_frozen_arm_holds_home_and_the_moving_arm_tracks_new_targets() {
             hook.before_step(&mut env);
             env.step(&[0.0; 12], &mut obs, &mut fin);
         }
-        let q: Vec<f64> = adr.iter().map(|&a| env.robot().data.qpos()[a]).collect();
+        let q: Vec<f64> = adr.iter().map(|&a| env.robot().data().qpos()[a]).collect();
         if moving {
             assert_eq!(hook.arm_resamples, 1);
             assert!(hook
@@ -224,7 +224,7 @@ fn the_push_force_is_on_for_exactly_50_of_every_300_steps() {
         hook.before_step(&mut env);
         let r = env.step(&[0.0; 12], &mut obs, &mut fin);
         assert!(!r.done);
-        let f = env.robot().data.xfrc_applied()[trunk];
+        let f = env.robot().data().xfrc_applied()[trunk];
         let norm = (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt();
         assert!(norm == 0.0 || (norm - 100.0).abs() < 1e-9, "force {f:?}");
         if norm > 0.0 {

@@ -61,21 +61,21 @@ fn model_has_sdk_ordered_hinges_and_actuators_and_the_facts_mass() {
 /// Puts the trunk at (0, 0, 1) with identity orientation and the given joint angles.
 fn pose(robot: &mut Robot, q: [f64; NUM_JOINTS]) {
     let a = robot.layout.root_qpos_adr;
-    let qpos = robot.data.qpos_mut();
+    let qpos = robot.data_mut().qpos_mut();
     qpos[a..a + 7].copy_from_slice(&[0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
     for (i, &v) in q.iter().enumerate() {
         let adr = robot.layout.qpos_adr[i];
-        robot.data.qpos_mut()[adr] = v;
+        robot.data_mut().qpos_mut()[adr] = v;
     }
-    robot.data.forward(&robot.model).unwrap();
+    robot.forward().unwrap();
 }
 
 fn foot_pos(robot: &Robot, leg: &str) -> [f64; 3] {
     let b = robot
-        .model
+        .model()
         .require_id(ObjKind::Body, &format!("{leg}_foot"))
         .unwrap();
-    robot.data.xpos()[b]
+    robot.data().xpos()[b]
 }
 
 fn assert_close(got: [f64; 3], want: [f64; 3], what: &str) {
@@ -99,14 +99,15 @@ fn legs_are_two_quarter_metre_segments() {
         let want = [sx * 0.2399, sy * (0.051 + 0.083), 1.0 - 0.5];
         assert_close(foot_pos(&robot, leg), want, leg);
         let thigh = robot
-            .model
+            .model()
             .require_id(ObjKind::Body, &format!("{leg}_thigh"))
             .unwrap();
         let calf = robot
-            .model
+            .model()
             .require_id(ObjKind::Body, &format!("{leg}_calf"))
             .unwrap();
-        assert!((robot.data.xpos()[thigh][2] - robot.data.xpos()[calf][2] - 0.25).abs() < 1e-9);
+        let xpos = robot.data().xpos();
+        assert!((xpos[thigh][2] - xpos[calf][2] - 0.25).abs() < 1e-9);
     }
 }
 
@@ -145,7 +146,7 @@ fn pd_holds_the_stand_pose_for_ten_seconds_on_feet_only() {
     );
     assert!(report.other_contacts.is_empty(), "{report:?}");
     assert_eq!(report.feet_in_contact, 4, "{report:?}");
-    assert!(robot.data.qpos().iter().all(|v| v.is_finite()));
+    assert!(robot.data().qpos().iter().all(|v| v.is_finite()));
     assert!(report.holds_pose());
 }
 
@@ -154,23 +155,21 @@ fn contact_forces_carry_the_robot_weight() {
     let mut robot = flat_robot();
     standing_check(&mut robot, 2.0).unwrap();
     let mut normal_n = 0.0;
-    let contacts: Vec<_> = robot.data.contacts().collect();
+    let contacts: Vec<_> = robot.data().contacts().collect();
+    let model = robot.model_copy().unwrap();
     for c in &contacts {
         assert!(matches!(
             robot.layout.geom_parts[c.geom1],
             Part::Foot(_) | Part::Other
         ));
-        normal_n += robot.data.contact_force(&robot.model, c.index).unwrap()[0];
+        normal_n += robot.data().contact_force(&model, c.index).unwrap()[0];
     }
-    let weight_n = robot.model.total_mass_kg() * 9.81;
+    let weight_n = robot.model().total_mass_kg() * 9.81;
     assert!(
         (normal_n - weight_n).abs() / weight_n < 0.05,
         "normal {normal_n} vs weight {weight_n}"
     );
-    assert!(robot
-        .data
-        .contact_force(&robot.model, contacts.len())
-        .is_err());
+    assert!(robot.data().contact_force(&model, contacts.len()).is_err());
 }
 
 #[test]
@@ -221,13 +220,14 @@ fn unknown_keyframe_is_an_error_naming_it() {
 fn nan_state_is_reported_as_instability_not_continued() {
     let mut robot = flat_robot();
     let dof = robot.layout.dof_adr[2];
-    robot.data.qvel_mut()[dof] = f64::NAN;
-    let e = robot.data.step(&robot.model).unwrap_err();
+    robot.data_mut().qvel_mut()[dof] = f64::NAN;
+    let target = robot.default_q_rad;
+    let e = robot.pd_substep(&target).unwrap_err();
     assert!(matches!(e, SimError::Unstable { .. }), "{e}");
     // MuJoCo reset the state; after our reset the robot steps fine again.
     robot.reset_to_default().unwrap();
-    robot.data.step(&robot.model).unwrap();
-    assert!(robot.data.qpos().iter().all(|v| v.is_finite()));
+    robot.pd_substep(&target).unwrap();
+    assert!(robot.data().qpos().iter().all(|v| v.is_finite()));
 }
 
 #[test]
@@ -240,6 +240,120 @@ fn data_refuses_a_model_of_another_shape() {
     .unwrap();
     let mut d = Data::new(&ball).unwrap();
     assert!(matches!(d.step(&robot), Err(SimError::ModelMismatch(_))));
+}
+
+#[test]
+fn data_runs_only_with_its_own_model_family() {
+    let a = Model::from_xml_path(FLAT).unwrap();
+    // The same file loaded again: same sizes, another model. A size check would
+    // accept it; the family check refuses it exactly.
+    let b = Model::from_xml_path(FLAT).unwrap();
+    let clone = a.try_clone().unwrap();
+    assert_eq!(a.family(), clone.family());
+    assert_ne!(a.family(), b.family());
+    let mut d = Data::new(&a).unwrap();
+    assert!(matches!(d.step(&b), Err(SimError::ModelMismatch(_))));
+    assert!(matches!(d.forward(&b), Err(SimError::ModelMismatch(_))));
+    assert!(matches!(d.reset(&b), Err(SimError::ModelMismatch(_))));
+    assert!(matches!(
+        d.reset_to_keyframe(&b, "stand"),
+        Err(SimError::ModelMismatch(_))
+    ));
+    d.step(&a).unwrap();
+    d.step(&clone).unwrap();
+}
+
+/// A free ball over a plane, with `size` as its `<size .../>` attributes.
+fn ball_xml(size: &str) -> String {
+    format!(
+        "<mujoco><size {size}/><worldbody>\
+         <geom type=\"plane\" size=\"0 0 1\"/>\
+         <body pos=\"0 0 0.3\"><freejoint/><geom type=\"box\" size=\"0.1 0.1 0.1\"/></body>\
+         </worldbody></mujoco>"
+    )
+}
+
+#[test]
+fn a_mujoco_error_leaves_mujoco_as_a_typed_error_and_the_process_goes_on() {
+    // The stack the robot scene needs at its reference pose (legs through the
+    // floor: 20 contacts) is far more than 200 mjtNums: MuJoCo's engine raises
+    // "Stack overflow" (here inside the compiler's own check of the model).
+    let xml = std::fs::read_to_string(FLAT).unwrap();
+    let aliengo = std::fs::read_to_string(ALIENGO).unwrap();
+    let small = aliengo.replace("<size ", "<size nstack=\"200\" ");
+    assert_ne!(small, aliengo, "aliengo.xml has a <size> element");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("aliengo.xml"), small).unwrap();
+    std::fs::write(dir.path().join("flat.xml"), xml).unwrap();
+    match Model::from_xml_path(dir.path().join("flat.xml")) {
+        Err(SimError::Load { message, .. }) => {
+            assert!(message.contains("Stack overflow"), "{message}")
+        }
+        Err(other) => panic!("unexpected error {other}"),
+        Ok(_) => panic!("a model whose stack cannot hold its reference pose loaded"),
+    }
+    // The process carries on: the same thread loads and steps a sound model.
+    let mut robot = flat_robot();
+    let target = robot.default_q_rad;
+    for _ in 0..100 {
+        robot.pd_substep(&target).unwrap();
+    }
+    // And a bad model is a typed load error, on another thread too.
+    let e = std::thread::spawn(|| {
+        Model::from_xml_str(
+            "<mujoco><worldbody><geom type=\"mesh\" mesh=\"nope\"/></worldbody></mujoco>",
+            "bad.xml",
+        )
+    })
+    .join()
+    .unwrap()
+    .unwrap_err();
+    assert!(matches!(e, SimError::Load { .. }), "{e}");
+}
+
+#[test]
+fn data_interrupted_by_an_error_is_refused_until_reset() {
+    // Measure the stack a box needs in the air and on the ground...
+    let roomy = Model::from_xml_str(&ball_xml("nstack=\"100000\""), "box").unwrap();
+    let mut d = Data::new(&roomy).unwrap();
+    let in_air = d.arena_use().stack;
+    let mut landed = None;
+    for i in 0..400 {
+        d.step(&roomy).unwrap();
+        if d.ncon() > 0 {
+            landed = Some(i);
+            d.step(&roomy).unwrap();
+            break;
+        }
+    }
+    let landed = landed.expect("the box lands");
+    let on_ground = d.arena_use().stack;
+    assert!(on_ground > in_air + 2, "air {in_air} ground {on_ground}");
+    // ... then give it a stack between the two: it falls fine and fails on landing.
+    let tight = format!("nstack=\"{}\"", (in_air + on_ground) / 2);
+    let m = Model::from_xml_str(&ball_xml(&tight), "tight box").unwrap();
+    let mut d = Data::new(&m).unwrap();
+    let mut failed_at = None;
+    for i in 0..=landed + 1 {
+        match d.step(&m) {
+            Ok(()) => {}
+            Err(SimError::MuJoCo { call, message }) => {
+                assert_eq!(call, "mj_step");
+                assert!(message.contains("Stack overflow"), "{message}");
+                failed_at = Some(i);
+                break;
+            }
+            Err(other) => panic!("unexpected error {other}"),
+        }
+    }
+    assert!(failed_at.is_some(), "the landing overflows the stack");
+    // The interrupted state is not stepped again...
+    assert!(matches!(d.step(&m), Err(SimError::NeedsReset(_))));
+    assert!(matches!(d.forward(&m), Err(SimError::NeedsReset(_))));
+    // ... until a reset, after which it falls again.
+    d.reset(&m).unwrap();
+    d.step(&m).unwrap();
+    assert!(d.time_s() > 0.0);
 }
 
 #[test]
@@ -258,7 +372,7 @@ fn models_and_data_work_from_other_threads_and_copies_are_independent() {
         for _ in 0..50 {
             robot.policy_step(&[0.0; 12]).unwrap();
         }
-        robot.data.time_s()
+        robot.data().time_s()
     });
     let t = handle.join().unwrap();
     assert!((t - 50.0 * 0.02).abs() < 1e-9);

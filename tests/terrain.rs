@@ -591,8 +591,8 @@ fn scenes_load_for_both_kinds_and_robot_wraps_the_rough_one() {
     let mut model = Model::from_xml_str(&t.scene_xml(ALIENGO).unwrap(), "rough scene").unwrap();
     t.upload(&mut model).unwrap();
     let robot = Robot::new(model, ControlConfig::default()).unwrap();
-    assert!(rall::robot::has_ground(&robot.model));
-    assert_eq!(robot.model.nhfield(), 1);
+    assert!(rall::robot::has_ground(robot.model()));
+    assert_eq!(robot.model().nhfield(), 1);
 
     // Flat: a plane named "terrain", no hfield; upload is a no-op.
     let mut cfg = small_cfg();
@@ -626,10 +626,10 @@ fn robot_stands_on_a_tile_origin() {
     let mut robot = Robot::new(model, ControlConfig::default()).unwrap();
     let o = t.tile_origin(3, PYRAMID);
     let a = robot.layout.root_qpos_adr;
-    let z0 = robot.data.qpos()[a + 2];
-    robot.data.qpos_mut()[a] = o[0];
-    robot.data.qpos_mut()[a + 1] = o[1];
-    robot.data.qpos_mut()[a + 2] = o[2] + z0;
+    let z0 = robot.data().qpos()[a + 2];
+    robot.data_mut().qpos_mut()[a] = o[0];
+    robot.data_mut().qpos_mut()[a + 1] = o[1];
+    robot.data_mut().qpos_mut()[a + 2] = o[2] + z0;
     let targets = robot.default_q_rad;
     for _ in 0..200 {
         robot.pd_substep(&targets).unwrap();

@@ -13,9 +13,9 @@ use super::config::{EnvConfig, PushConfig};
 use super::observation::ACT_DIM;
 use super::scene::build_scene;
 use super::vec_env::VecEnv;
-use crate::robot::{Robot, NUM_JOINTS};
+use crate::robot::{ControlConfig, RobotLayout, NUM_JOINTS};
 use crate::sim::raw_bench::{raw_pd_steps, RawPd};
-use crate::sim::{Data, Result, SimError};
+use crate::sim::{Data, Model, Result, SimError};
 
 /// What one benchmark run measured.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -35,9 +35,14 @@ impl EnvBenchReport {
     }
 }
 
-/// A raw robot: its own model copy and state, and its PD targets per action.
+/// A raw robot: its own model copy (holding its env's randomisation) and
+/// state, and what its PD law needs.
 struct RawRobot {
-    robot: Robot,
+    model: Model,
+    data: Data,
+    layout: RobotLayout,
+    control: ControlConfig,
+    default_q_rad: [f64; NUM_JOINTS],
     limits: [f64; NUM_JOINTS],
 }
 
@@ -74,20 +79,20 @@ pub fn bench_env(
         .iter()
         .map(|e| {
             let src = e.robot();
-            let model = src.model.try_clone()?;
+            let model = src.model_copy()?;
             let mut data = Data::new(&model)?;
-            data.qpos_mut().copy_from_slice(src.data.qpos());
-            data.qvel_mut().copy_from_slice(src.data.qvel());
+            data.qpos_mut().copy_from_slice(src.data().qpos());
+            data.qvel_mut().copy_from_slice(src.data().qvel());
             data.forward(&model)?;
-            let robot = Robot {
+            let limits = std::array::from_fn(|i| src.control.torque_limit_nm(i));
+            Ok(RawRobot {
                 model,
                 data,
                 layout: src.layout.clone(),
                 control: src.control.clone(),
                 default_q_rad: src.default_q_rad,
-            };
-            let limits = std::array::from_fn(|i| robot.control.torque_limit_nm(i));
-            Ok(RawRobot { robot, limits })
+                limits,
+            })
         })
         .collect::<Result<_>>()?;
     let pool = rayon::ThreadPoolBuilder::new()
@@ -119,14 +124,8 @@ pub fn bench_env(
         // Both loops start each round from the same robot states (not timed), so
         // the raw robots see the envs' resets instead of lying where they fell.
         for (r, e) in raw.iter_mut().zip(vec.envs()) {
-            r.robot
-                .data
-                .qpos_mut()
-                .copy_from_slice(e.robot().data.qpos());
-            r.robot
-                .data
-                .qvel_mut()
-                .copy_from_slice(e.robot().data.qvel());
+            r.data.qpos_mut().copy_from_slice(e.robot().data().qpos());
+            r.data.qvel_mut().copy_from_slice(e.robot().data().qvel());
         }
         let t = Instant::now();
         for j in 0..round_steps {
@@ -134,20 +133,24 @@ pub fn bench_env(
             pool.install(|| {
                 raw.par_iter_mut()
                     .zip(actions.par_chunks(ACT_DIM))
-                    .for_each(|(r, a)| {
-                        let target = r.robot.control.joint_targets(&r.robot.default_q_rad, a);
+                    .try_for_each(|(r, a)| {
+                        let target = r.control.joint_targets(&r.default_q_rad, a);
                         let pd = RawPd {
-                            qpos_adr: &r.robot.layout.qpos_adr,
-                            dof_adr: &r.robot.layout.dof_adr,
-                            actuator: &r.robot.layout.actuator_ids,
+                            qpos_adr: &r.layout.qpos_adr,
+                            dof_adr: &r.layout.dof_adr,
+                            actuator: &r.layout.actuator_ids,
                             target_rad: &target,
-                            kp: r.robot.control.kp_nm_per_rad,
-                            kd: r.robot.control.kd_nm_s_per_rad,
+                            kp: r.control.kp_nm_per_rad,
+                            kd: r.control.kd_nm_s_per_rad,
                             limit_nm: &r.limits,
                         };
-                        raw_pd_steps(&r.robot.model, &mut r.robot.data, decimation, &pd);
+                        // A raw robot that failed starts over (as an env would).
+                        match raw_pd_steps(&r.model, &mut r.data, decimation, &pd) {
+                            Ok(()) => Ok(()),
+                            Err(_) => r.data.reset(&r.model),
+                        }
                     })
-            });
+            })?;
         }
         t_raw += t.elapsed();
         steps += round_steps;

@@ -21,4 +21,4 @@ pub use config::EnvConfig;
 pub use observation::{ACT_DIM, OBS_DIM, OBS_LAYOUT};
 pub use scene::{build_scene, Scene};
 pub use single::{Env, EpisodeDraw, EpisodeEnd, EpisodeSummary, ForcePush, StepResult};
-pub use vec_env::{Batch, StepTimes, VecEnv};
+pub use vec_env::{Batch, ModelSharing, StepTimes, VecEnv};

@@ -7,9 +7,10 @@ use super::config::EnvConfig;
 use super::terrain::{Terrain, TerrainKind};
 use crate::sim::{Model, Result, SimError};
 
-/// The loaded scene and, on rough ground, the terrain it was made from.
+/// The loaded scene and, on rough ground, the terrain it was made from. The
+/// model is shared by every env built on it (the terrain is stored once).
 pub struct Scene {
-    pub model: Model,
+    pub model: Arc<Model>,
     pub terrain: Option<Arc<Terrain>>,
 }
 
@@ -31,5 +32,8 @@ pub fn build_scene(cfg: &EnvConfig, seed: u64) -> Result<Scene> {
     )?;
     terrain.upload(&mut model).map_err(SimError::Invalid)?;
     let terrain = (cfg.terrain.kind != TerrainKind::Flat).then(|| Arc::new(terrain));
-    Ok(Scene { model, terrain })
+    Ok(Scene {
+        model: Arc::new(model),
+        terrain,
+    })
 }

@@ -14,7 +14,7 @@ use super::risk::{evaluate_risk, RiskOutcome, NUM_RISK_TERMS};
 use super::state::{roll_pitch_yaw, rotate_inverse, RobotState};
 use super::terrain::Terrain;
 use crate::robot::{Part, Robot, NUM_JOINTS};
-use crate::sim::{Model, Result};
+use crate::sim::{ArenaUse, Model, Result};
 
 /// Domain randomisation drawn at the start of an episode.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -86,7 +86,11 @@ pub struct Env {
     rng: ChaCha8Rng,
     /// Friction of every geom in the unrandomised model.
     base_friction: Vec<[f64; 3]>,
-    base_trunk_mass_kg: f64,
+    /// Body and subtree masses in the unrandomised model (kg).
+    base_body_mass_kg: Vec<f64>,
+    base_subtree_mass_kg: Vec<f64>,
+    /// The trunk and its ancestors: the subtrees that carry added trunk mass.
+    trunk_chain: Vec<usize>,
     max_steps: usize,
     // --- episode state ---
     pub draw: EpisodeDraw,
@@ -105,6 +109,8 @@ pub struct Env {
     sums: EpisodeSummary,
     /// Physics failures since creation.
     pub instabilities: u64,
+    /// The most of MuJoCo's arena used in any finished episode.
+    arena_peak: ArenaUse,
     last_summary: Option<EpisodeSummary>,
     /// What the last `step` returned (read by `VecEnv` for batch counters).
     pub last_step: StepResult,
@@ -116,19 +122,50 @@ pub struct Env {
 }
 
 impl Env {
-    /// Builds env `index` from its own copy of `base_model` (randomisation never
-    /// leaks between envs). `seed` and `index` fix its random stream.
+    /// Builds env `index` over `base_model`, shared with other envs (one
+    /// model for all, the terrain stored once): its randomisation lives in its
+    /// robot's parameters, written into the stepping thread's working copy of
+    /// the model before each step, so it never leaks between envs. `seed` and
+    /// `index` fix its random stream.
     pub fn new(
+        cfg: Arc<EnvConfig>,
+        base_model: &Arc<Model>,
+        terrain: Option<Arc<Terrain>>,
+        seed: u64,
+        index: usize,
+    ) -> Result<Env> {
+        let robot = Robot::shared(base_model.clone(), cfg.control.clone())?;
+        Env::with_robot(cfg, robot, terrain, seed, index)
+    }
+
+    /// As [`Env::new`], with a model copy of the env's own (more memory, same
+    /// physics: the reference the shared model is checked against).
+    pub fn with_own_model(
         cfg: Arc<EnvConfig>,
         base_model: &Model,
         terrain: Option<Arc<Terrain>>,
         seed: u64,
         index: usize,
     ) -> Result<Env> {
-        let model = base_model.try_clone()?;
-        let robot = Robot::new(model, cfg.control.clone())?;
-        let base_friction = robot.model.geom_friction().to_vec();
-        let base_trunk_mass_kg = robot.model.body_mass_kg()[robot.layout.trunk_body];
+        let robot = Robot::new(base_model.try_clone()?, cfg.control.clone())?;
+        Env::with_robot(cfg, robot, terrain, seed, index)
+    }
+
+    fn with_robot(
+        cfg: Arc<EnvConfig>,
+        robot: Robot,
+        terrain: Option<Arc<Terrain>>,
+        seed: u64,
+        index: usize,
+    ) -> Result<Env> {
+        let base = robot.params();
+        let base_friction = base.geom_friction().to_vec();
+        let base_body_mass_kg = base.body_mass_kg().to_vec();
+        let base_subtree_mass_kg = base.body_subtree_mass_kg().to_vec();
+        let mut trunk_chain = vec![robot.layout.trunk_body];
+        while let Some(&b) = trunk_chain.last().filter(|&&b| b != 0) {
+            trunk_chain.push(robot.model().body_parent(b));
+        }
         let max_steps = cfg.max_episode_steps();
         let rng =
             ChaCha8Rng::seed_from_u64(seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
@@ -139,7 +176,9 @@ impl Env {
             terrain,
             rng,
             base_friction,
-            base_trunk_mass_kg,
+            base_body_mass_kg,
+            base_subtree_mass_kg,
+            trunk_chain,
             max_steps,
             draw: EpisodeDraw {
                 friction: None,
@@ -159,12 +198,19 @@ impl Env {
             commanded_distance_m: 0.0,
             sums: empty_summary(index),
             instabilities: 0,
+            arena_peak: ArenaUse::default(),
             last_summary: None,
             last_step: StepResult::default(),
             physics_ns: 0,
             step_ns: 0,
         };
         Ok(env)
+    }
+
+    /// The most of MuJoCo's arena (contacts, constraint rows, stack) this env
+    /// has used in any episode so far, beside the capacity.
+    pub fn arena_use(&self) -> ArenaUse {
+        self.arena_peak.max(self.robot.data().arena_use())
     }
 
     /// The summary of the episode that ended in the last `step`, once.
@@ -213,6 +259,7 @@ impl Env {
 
     /// Starts a new episode and writes its first observation.
     pub fn reset(&mut self, obs: &mut [f32]) -> Result<()> {
+        self.arena_peak = self.arena_peak.max(self.robot.data().arena_use());
         self.apply_randomization();
         self.robot.reset_to_default()?;
         self.place_at_spawn()?;
@@ -226,13 +273,15 @@ impl Env {
         self.commanded_distance_m = 0.0;
         self.sums = empty_summary(self.index);
         self.sums.terrain_level = self.terrain_level;
-        let qd = self.robot.layout.joint_vel(self.robot.data.qvel());
+        let qd = self.robot.layout.joint_vel(self.robot.data().qvel());
         self.state = self.measure(&qd, &[0.0; NUM_JOINTS]);
         self.observe(obs);
         Ok(())
     }
 
-    /// Draws this episode's friction and base mass and writes them into the model.
+    /// Draws this episode's friction and base mass and writes them into the
+    /// robot's parameters (absolute values from the unrandomised model, so the
+    /// result does not depend on earlier episodes).
     fn apply_randomization(&mut self) {
         let r = &self.cfg.randomization;
         let friction = r.friction.map(|[lo, hi]| self.rng.gen_range(lo..=hi));
@@ -243,16 +292,24 @@ impl Env {
             friction,
             added_base_mass_kg: added,
         };
-        let model = &mut self.robot.model;
-        for (g, base) in model
+        let trunk = self.robot.layout.trunk_body;
+        let params = self.robot.params_mut();
+        for (g, base) in params
             .geom_friction_mut()
             .iter_mut()
             .zip(&self.base_friction)
         {
             *g = [friction.unwrap_or(base[0]), base[1], base[2]];
         }
-        let trunk = self.robot.layout.trunk_body;
-        model.set_body_mass_kg(trunk, self.base_trunk_mass_kg + added);
+        params
+            .body_mass_kg_mut()
+            .copy_from_slice(&self.base_body_mass_kg);
+        params.body_mass_kg_mut()[trunk] += added;
+        let subtree = params.body_subtree_mass_kg_mut();
+        subtree.copy_from_slice(&self.base_subtree_mass_kg);
+        for &b in &self.trunk_chain {
+            subtree[b] += added;
+        }
     }
 
     /// Puts the env on terrain tile (level, type) for its next episode.
@@ -268,12 +325,12 @@ impl Env {
             None => [0.0, 0.0, 0.0],
         };
         let a = self.robot.layout.root_qpos_adr;
-        let qpos = self.robot.data.qpos_mut();
+        let qpos = self.robot.data_mut().qpos_mut();
         qpos[a] += origin[0];
         qpos[a + 1] += origin[1];
         qpos[a + 2] += origin[2];
         self.spawn_xy_m = [qpos[a], qpos[a + 1]];
-        self.robot.data.forward(&self.robot.model)
+        self.robot.forward()
     }
 
     fn sample_command(&mut self) -> [f64; 3] {
@@ -311,7 +368,7 @@ impl Env {
         self.previous_action = self.action;
         self.action.copy_from_slice(action);
         let pushed = self.apply_pushes();
-        let qd_before = self.robot.layout.joint_vel(self.robot.data.qvel());
+        let qd_before = self.robot.layout.joint_vel(self.robot.data().qvel());
         let mut result = StepResult {
             pushed,
             ..Default::default()
@@ -453,7 +510,7 @@ impl Env {
                         steps_left: hold_steps,
                     };
                 }
-                let frc = &mut self.robot.data.xfrc_applied_mut()[trunk];
+                let frc = &mut self.robot.data_mut().xfrc_applied_mut()[trunk];
                 if self.force_push.steps_left > 0 {
                     frc[..3].copy_from_slice(&self.force_push.force_n);
                     self.force_push.steps_left -= 1;
@@ -479,7 +536,7 @@ impl Env {
     /// Adds `dv` (m/s, world x and y) to the base velocity.
     pub fn kick_base_velocity(&mut self, dv_mps: [f64; 2]) {
         let a = self.robot.layout.root_dof_adr;
-        let qvel = self.robot.data.qvel_mut();
+        let qvel = self.robot.data_mut().qvel_mut();
         qvel[a] += dv_mps[0];
         qvel[a + 1] += dv_mps[1];
     }
@@ -517,7 +574,7 @@ impl Env {
         let r = &self.robot;
         let quat = r.base_quat_wxyz();
         let a = r.layout.root_dof_adr;
-        let qvel = r.data.qvel();
+        let qvel = r.data().qvel();
         let v_world = [qvel[a], qvel[a + 1], qvel[a + 2]];
         let [roll, pitch, _] = roll_pitch_yaw(quat);
         let qd = r.layout.joint_vel(qvel);
@@ -528,14 +585,14 @@ impl Env {
             gravity_body: rotate_inverse(quat, [0.0, 0.0, -1.0]),
             roll_rad: roll,
             pitch_rad: pitch,
-            q_rad: r.layout.joint_pos(r.data.qpos()),
+            q_rad: r.layout.joint_pos(r.data().qpos()),
             qd_rad_s: qd,
             qdd_rad_s2: std::array::from_fn(|i| (qd[i] - qd_before[i]) / dt),
             torques_nm: *torques,
             ..Default::default()
         };
         let mut penalised = [false; 64];
-        for c in r.data.contacts() {
+        for c in r.data().contacts() {
             for (g, other) in [(c.geom1, c.geom2), (c.geom2, c.geom1)] {
                 let other_is_robot = !matches!(r.layout.geom_parts[other], Part::Other);
                 if other_is_robot {
@@ -548,7 +605,8 @@ impl Env {
                             penalised[g] = true;
                             s.penalised_contacts += 1;
                         }
-                        if r.layout.geom_parts[g] == Part::Trunk && r.model.geom_body(other) == 0 {
+                        if r.layout.geom_parts[g] == Part::Trunk && r.model().geom_body(other) == 0
+                        {
                             s.trunk_on_ground = true;
                         }
                     }

@@ -12,7 +12,7 @@ use super::observation::{ACT_DIM, OBS_DIM};
 use super::risk::NUM_RISK_TERMS;
 use super::single::{Env, EpisodeSummary};
 use super::terrain::{Curriculum, Terrain};
-use crate::sim::{Model, Result, SimError};
+use crate::sim::{ArenaUse, Model, Result, SimError};
 
 /// Batched outputs of one step, row-major (env-major).
 #[derive(Debug, Clone)]
@@ -61,6 +61,17 @@ pub struct StepTimes {
     pub reset_s: f64,
 }
 
+/// How the envs of a [`VecEnv`] hold their model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ModelSharing {
+    /// One model for all envs (terrain stored once); each worker thread keeps
+    /// one working copy and writes each env's randomisation in before its step.
+    #[default]
+    PerThread,
+    /// A full model copy per env (the former layout; the reference in tests).
+    PerEnv,
+}
+
 pub struct VecEnv {
     envs: Vec<Env>,
     times: StepTimes,
@@ -73,14 +84,36 @@ pub struct VecEnv {
 }
 
 impl VecEnv {
-    /// `n` envs over copies of `base_model`, stepped on `threads` threads.
+    /// `n` envs over `base_model` (shared, [`ModelSharing::PerThread`]),
+    /// stepped on `threads` threads.
     pub fn new(
         cfg: Arc<EnvConfig>,
-        base_model: &Model,
+        base_model: &Arc<Model>,
         terrain: Option<Arc<Terrain>>,
         n: usize,
         threads: usize,
         seed: u64,
+    ) -> Result<VecEnv> {
+        VecEnv::with_sharing(
+            cfg,
+            base_model,
+            terrain,
+            n,
+            threads,
+            seed,
+            ModelSharing::PerThread,
+        )
+    }
+
+    /// As [`VecEnv::new`], choosing how the envs hold their model.
+    pub fn with_sharing(
+        cfg: Arc<EnvConfig>,
+        base_model: &Arc<Model>,
+        terrain: Option<Arc<Terrain>>,
+        n: usize,
+        threads: usize,
+        seed: u64,
+        sharing: ModelSharing,
     ) -> Result<VecEnv> {
         if n == 0 {
             return Err(SimError::Invalid(
@@ -95,7 +128,14 @@ impl VecEnv {
         let envs = pool.install(|| {
             (0..n)
                 .into_par_iter()
-                .map(|i| Env::new(cfg.clone(), base_model, terrain.clone(), seed, i))
+                .map(|i| match sharing {
+                    ModelSharing::PerThread => {
+                        Env::new(cfg.clone(), base_model, terrain.clone(), seed, i)
+                    }
+                    ModelSharing::PerEnv => {
+                        Env::with_own_model(cfg.clone(), base_model, terrain.clone(), seed, i)
+                    }
+                })
                 .collect::<Result<Vec<_>>>()
         })?;
         let curriculum = terrain
@@ -260,6 +300,16 @@ impl VecEnv {
         c.restore_levels(levels).map_err(SimError::Invalid)?;
         self.sync_terrain_cells();
         self.reset_all()
+    }
+
+    /// The most of MuJoCo's arena (contacts, constraint rows, stack) any env
+    /// has used so far, beside the capacity.
+    pub fn max_arena_use(&self) -> ArenaUse {
+        self.envs
+            .iter()
+            .map(|e| e.arena_use())
+            .reduce(ArenaUse::max)
+            .unwrap_or_default()
     }
 
     /// Mean terrain level over envs (0 on flat ground).

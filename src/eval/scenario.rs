@@ -293,7 +293,7 @@ pub struct ScenarioSetup {
     pub env: EnvConfig,
     /// Robot + payload + ground; its keyframe `env.control.default_keyframe` holds
     /// the spawn pose and the payload's initial state.
-    pub model: Model,
+    pub model: Arc<Model>,
     /// The heightfield (rough ground and race course), for drawing.
     pub ground: Option<Arc<Ground>>,
     /// Trunk position of the keyframe (m).
@@ -362,15 +362,15 @@ impl ScenarioHook {
     pub fn payload_on_ground(&self, env: &Env) -> bool {
         let r = env.robot();
         let fall = &self.t.fall_geoms;
-        r.data.contacts().any(|c| {
-            (fall[c.geom1] && r.model.geom_body(c.geom2) == 0)
-                || (fall[c.geom2] && r.model.geom_body(c.geom1) == 0)
+        r.data().contacts().any(|c| {
+            (fall[c.geom1] && r.model().geom_body(c.geom2) == 0)
+                || (fall[c.geom2] && r.model().geom_body(c.geom1) == 0)
         })
     }
 }
 
 fn write_arm_targets(env: &mut Env, arm: &ArmInfo, targets: &[f64; 6]) {
-    let ctrl = env.robot_mut().data.ctrl_mut();
+    let ctrl = env.robot_mut().data_mut().ctrl_mut();
     for (a, t) in arm.actuators.iter().zip(targets) {
         ctrl[*a] = *t;
     }
@@ -569,7 +569,7 @@ pub fn build_scenario(
         spec: *spec,
         params: params.clone(),
         env,
-        model,
+        model: Arc::new(model),
         ground,
         spawn_m: [root[0] + spawn[0], root[1] + spawn[1], root[2] + spawn[2]],
         platform,

@@ -122,6 +122,7 @@ pub fn with_simd<R>(f: impl FnOnce() -> R) -> R {
 /// `c[m x n] = (accumulate ? c : 0) + op(a)[m x k] * op(b)[k x n]`, all row-major.
 /// `a_t`: `a` is stored as `k x m` (use its transpose); `b_t`: `b` is stored as `n x k`.
 #[allow(clippy::too_many_arguments)]
+#[allow(unsafe_code)]
 pub fn gemm(
     m: usize,
     n: usize,

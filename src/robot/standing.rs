@@ -51,7 +51,7 @@ pub fn standing_check(robot: &mut Robot, seconds: f64) -> Result<StandingReport>
         warnings: 0,
         instability: None,
     };
-    let mut other: Vec<usize> = vec![0; robot.model.ngeom()];
+    let mut other: Vec<usize> = vec![0; robot.model().ngeom()];
     for _ in 0..steps {
         match robot.pd_substep(&target) {
             Ok(tau) => {
@@ -69,7 +69,7 @@ pub fn standing_check(robot: &mut Robot, seconds: f64) -> Result<StandingReport>
         }
         report.min_height_m = report.min_height_m.min(z);
         report.max_height_m = report.max_height_m.max(z);
-        for c in robot.data.contacts() {
+        for c in robot.data().contacts() {
             for g in [c.geom1, c.geom2] {
                 if !matches!(robot.layout.geom_parts[g], Part::Foot(_) | Part::Other) {
                     other[g] += 1;
@@ -78,9 +78,9 @@ pub fn standing_check(robot: &mut Robot, seconds: f64) -> Result<StandingReport>
         }
     }
     report.final_height_m = robot.base_pos_m()[2];
-    report.warnings = robot.data.warnings().total();
+    report.warnings = robot.data().warnings().total();
     let mut feet = [false; 4];
-    for c in robot.data.contacts() {
+    for c in robot.data().contacts() {
         for g in [c.geom1, c.geom2] {
             if let Part::Foot(leg) = robot.layout.geom_parts[g] {
                 feet[leg] = true;
@@ -92,7 +92,7 @@ pub fn standing_check(robot: &mut Robot, seconds: f64) -> Result<StandingReport>
         .iter()
         .enumerate()
         .filter(|(_, &n)| n > 0)
-        .map(|(g, &n)| (robot.model.name(ObjKind::Geom, g).to_string(), n))
+        .map(|(g, &n)| (robot.model().name(ObjKind::Geom, g).to_string(), n))
         .collect();
     Ok(report)
 }

@@ -2,21 +2,20 @@
 
 use std::ptr::NonNull;
 
-use super::error::{check_error, Result, SimError};
+use super::error::{install_handlers, Result, SimError};
 use super::ffi;
 use super::model::{Model, ObjKind};
+use super::shim;
 
-/// The sizes a `Data` was made for; checked on every call that takes a model so
-/// a `Data` can never be stepped with an incompatible model.
+/// The array sizes of the model family a `Data` was made for (slices use them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Shape {
     nq: i32,
     nv: i32,
     nu: i32,
-    na: i32,
     nbody: i32,
     ngeom: i32,
-    nstack: i32,
+    /// Arena capacities (`<size>`), for [`Data::arena_use`].
     nconmax: i32,
     njmax: i32,
 }
@@ -29,12 +28,37 @@ impl Shape {
             nq: m.nq,
             nv: m.nv,
             nu: m.nu,
-            na: m.na,
             nbody: m.nbody,
             ngeom: m.ngeom,
-            nstack: m.nstack,
             nconmax: m.nconmax,
             njmax: m.njmax,
+        }
+    }
+}
+
+/// How much of MuJoCo's preallocated arena a `Data` has used at most since its
+/// last reset, beside its capacity (`<size nconmax njmax nstack>`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ArenaUse {
+    pub contacts: usize,
+    pub contacts_max: usize,
+    pub constraints: usize,
+    pub constraints_max: usize,
+    /// In mjtNums.
+    pub stack: usize,
+    pub stack_max: usize,
+}
+
+impl ArenaUse {
+    /// Element-wise maximum.
+    pub fn max(self, other: ArenaUse) -> ArenaUse {
+        ArenaUse {
+            contacts: self.contacts.max(other.contacts),
+            contacts_max: self.contacts_max.max(other.contacts_max),
+            constraints: self.constraints.max(other.constraints),
+            constraints_max: self.constraints_max.max(other.constraints_max),
+            stack: self.stack.max(other.stack),
+            stack_max: self.stack_max.max(other.stack_max),
         }
     }
 }
@@ -113,10 +137,17 @@ impl Warnings {
 }
 
 /// Owned simulation state. Freed on drop; `Send` (one thread at a time).
+///
+/// Tied to the model family it was made for: every call that takes a model
+/// refuses one of another family ([`SimError::ModelMismatch`]).
 pub struct Data {
     ptr: NonNull<ffi::mjData>,
+    family: u64,
     shape: Shape,
     warnings_seen: Warnings,
+    /// Set when a MuJoCo error interrupted a call (the state is undefined);
+    /// cleared by a reset.
+    broken: Option<String>,
 }
 
 // SAFETY: mjData has no thread affinity; &mut self gives exclusive access.
@@ -132,30 +163,66 @@ impl Drop for Data {
 impl Data {
     /// Allocates state for `model`, at the model's default pose.
     pub fn new(model: &Model) -> Result<Data> {
-        // SAFETY: valid model.
-        let raw = unsafe { ffi::mj_makeData(model.raw()) };
-        check_error()?;
-        let ptr = NonNull::new(raw)
-            .ok_or_else(|| SimError::MuJoCo("mj_makeData returned null".into()))?;
+        install_handlers();
+        let mut raw = std::ptr::null_mut();
+        // SAFETY: valid model; the shim returns 1 (and no data) on a MuJoCo error.
+        let rc = unsafe { shim::rall_mj_makeData(model.raw(), &mut raw) };
+        shim::check(rc, "mj_makeData")?;
+        let ptr = NonNull::new(raw).ok_or_else(|| SimError::MuJoCo {
+            call: "mj_makeData",
+            message: "returned no data".into(),
+        })?;
         let mut data = Data {
             ptr,
+            family: model.family(),
             shape: Shape::of(model),
             warnings_seen: Warnings::default(),
+            broken: None,
         };
-        data.forward(model)?;
-        Ok(data)
+        // The model's reference pose (qpos0) may be no real state (legs through
+        // the ground, more contacts than the arena holds): its warnings are not
+        // the caller's concern, MuJoCo errors are. Resets start counting afresh.
+        match data.forward(model) {
+            Ok(()) | Err(SimError::Unstable { .. }) => Ok(data),
+            Err(e) => Err(e),
+        }
     }
 
+    /// The family id of the model this data was made for.
+    pub fn family(&self) -> u64 {
+        self.family
+    }
+
+    #[inline]
     fn check_model(&self, model: &Model) -> Result<()> {
-        let other = Shape::of(model);
-        if other == self.shape {
+        if model.family() == self.family {
             Ok(())
         } else {
             Err(SimError::ModelMismatch(format!(
-                "data {:?} vs model {:?}",
-                self.shape, other
+                "data of model family {} used with model family {}",
+                self.family,
+                model.family()
             )))
         }
+    }
+
+    /// Like [`Data::check_model`], and refuses a data left undefined by an error.
+    #[inline]
+    fn check_usable(&self, model: &Model) -> Result<()> {
+        self.check_model(model)?;
+        match &self.broken {
+            None => Ok(()),
+            Some(e) => Err(SimError::NeedsReset(e.clone())),
+        }
+    }
+
+    /// Records a guarded call's failure: the data is unusable until a reset.
+    fn guarded(&mut self, rc: std::ffi::c_int, call: &'static str) -> Result<()> {
+        let r = shim::check(rc, call);
+        if let Err(e) = &r {
+            self.broken = Some(e.to_string());
+        }
+        r
     }
 
     fn d(&self) -> &ffi::mjData {
@@ -168,23 +235,24 @@ impl Data {
     /// data) or a full contact/constraint list; the caller should reset.
     #[inline]
     pub fn step(&mut self, model: &Model) -> Result<()> {
-        self.check_model(model)?;
-        // SAFETY: model and data match in shape (checked above).
-        unsafe { ffi::mj_step(model.raw(), self.ptr.as_ptr()) };
+        self.check_usable(model)?;
+        // SAFETY: the data was made for this model's family (same layout).
+        let rc = unsafe { shim::rall_mj_step(model.raw(), self.ptr.as_ptr()) };
+        self.guarded(rc, "mj_step")?;
         self.after_call()
     }
 
     /// Recomputes derived quantities (kinematics, contacts, forces) without integrating.
     pub fn forward(&mut self, model: &Model) -> Result<()> {
-        self.check_model(model)?;
+        self.check_usable(model)?;
         // SAFETY: as in step.
-        unsafe { ffi::mj_forward(model.raw(), self.ptr.as_ptr()) };
+        let rc = unsafe { shim::rall_mj_forward(model.raw(), self.ptr.as_ptr()) };
+        self.guarded(rc, "mj_forward")?;
         self.after_call()
     }
 
     #[inline]
     fn after_call(&mut self) -> Result<()> {
-        check_error()?;
         let now = self.warnings();
         if now != self.warnings_seen {
             let before = self.warnings_seen;
@@ -200,10 +268,13 @@ impl Data {
     }
 
     /// Resets to the model's default state (qpos0, zero velocity).
+    /// Also makes a data usable again after a MuJoCo error.
     pub fn reset(&mut self, model: &Model) -> Result<()> {
         self.check_model(model)?;
-        // SAFETY: matching model and data.
-        unsafe { ffi::mj_resetData(model.raw(), self.ptr.as_ptr()) };
+        // SAFETY: matching model family; mj_resetData also empties the stack.
+        let rc = unsafe { shim::rall_mj_resetData(model.raw(), self.ptr.as_ptr()) };
+        self.guarded(rc, "mj_resetData")?;
+        self.broken = None;
         self.warnings_seen = Warnings::default();
         self.forward(model)
     }
@@ -212,10 +283,26 @@ impl Data {
     pub fn reset_to_keyframe(&mut self, model: &Model, name: &str) -> Result<()> {
         self.check_model(model)?;
         let key = model.require_id(ObjKind::Key, name)?;
-        // SAFETY: matching model and data, key id in range.
-        unsafe { ffi::mj_resetDataKeyframe(model.raw(), self.ptr.as_ptr(), key as i32) };
+        // SAFETY: matching model family, key id in range.
+        let rc =
+            unsafe { shim::rall_mj_resetDataKeyframe(model.raw(), self.ptr.as_ptr(), key as i32) };
+        self.guarded(rc, "mj_resetDataKeyframe")?;
+        self.broken = None;
         self.warnings_seen = Warnings::default();
         self.forward(model)
+    }
+
+    /// Arena use since the last reset, beside the capacities.
+    pub fn arena_use(&self) -> ArenaUse {
+        let d = self.d();
+        ArenaUse {
+            contacts: d.maxuse_con.max(0) as usize,
+            contacts_max: self.shape.nconmax.max(0) as usize,
+            constraints: d.maxuse_efc.max(0) as usize,
+            constraints_max: self.shape.njmax.max(0) as usize,
+            stack: d.maxuse_stack.max(0) as usize,
+            stack_max: d.nstack.max(0) as usize,
+        }
     }
 
     /// Warning counters since the last reset.
@@ -295,7 +382,7 @@ impl Data {
 
     /// Number of active contacts.
     pub fn ncon(&self) -> usize {
-        self.d().ncon.max(0) as usize
+        self.d().ncon.clamp(0, self.shape.nconmax.max(0)) as usize
     }
 
     /// The active contacts.
@@ -320,7 +407,7 @@ impl Data {
     /// Contact force of contact `index` in its contact frame: normal force
     /// first (N), then tangential; `mj_contactForce`.
     pub fn contact_force(&self, model: &Model, index: usize) -> Result<[f64; 6]> {
-        self.check_model(model)?;
+        self.check_usable(model)?;
         if index >= self.ncon() {
             return Err(SimError::Invalid(format!(
                 "contact {index} of {}",
@@ -328,9 +415,11 @@ impl Data {
             )));
         }
         let mut out = [0.0; 6];
-        // SAFETY: matching model and data, index < ncon.
-        unsafe { ffi::mj_contactForce(model.raw(), self.d(), index as i32, out.as_mut_ptr()) };
-        check_error()?;
+        // SAFETY: matching model family, index < ncon, 6 output reals.
+        let rc = unsafe {
+            shim::rall_mj_contactForce(model.raw(), self.d(), index as i32, out.as_mut_ptr())
+        };
+        shim::check(rc, "mj_contactForce")?;
         Ok(out)
     }
 
@@ -367,14 +456,47 @@ pub mod raw_bench {
         pub limit_nm: &'a [f64],
     }
 
+    impl RawPd<'_> {
+        /// Every offset inside its array and every list as long as the actuators:
+        /// what makes the unchecked loop below sound.
+        fn check(&self, data: &Data) -> Result<()> {
+            let n = self.actuator.len();
+            let s = data.shape;
+            let lens_ok = [
+                self.qpos_adr.len(),
+                self.dof_adr.len(),
+                self.target_rad.len(),
+                self.limit_nm.len(),
+            ]
+            .iter()
+            .all(|&l| l == n);
+            let inside = |adr: &[usize], len: i32| adr.iter().all(|&a| a < len.max(0) as usize);
+            if lens_ok
+                && inside(self.qpos_adr, s.nq)
+                && inside(self.dof_adr, s.nv)
+                && inside(self.actuator, s.nu)
+            {
+                Ok(())
+            } else {
+                Err(SimError::Invalid(format!(
+                    "raw PD offsets do not fit the data (nq {}, nv {}, nu {}) or differ in length",
+                    s.nq, s.nv, s.nu
+                )))
+            }
+        }
+    }
+
     /// `n` bare `mj_step` calls, each after the same PD law written straight
-    /// into `d->ctrl` from `d->qpos`/`d->qvel` pointers: no checks, no slices.
-    pub fn raw_pd_steps(model: &Model, data: &mut Data, n: usize, pd: &RawPd) {
+    /// into `d->ctrl` from `d->qpos`/`d->qvel` pointers: offsets checked once,
+    /// then no checks, no slices, no warning scan.
+    pub fn raw_pd_steps(model: &Model, data: &mut Data, n: usize, pd: &RawPd) -> Result<()> {
+        data.check_usable(model)?;
+        pd.check(data)?;
         let d = data.ptr.as_ptr();
         for _ in 0..n {
-            // SAFETY: data was made for model (constructor invariant); the
-            // offsets come from the same model.
-            unsafe {
+            // SAFETY: data belongs to model's family; every offset was checked
+            // against the array sizes above.
+            let rc = unsafe {
                 let (qpos, qvel, ctrl) = ((*d).qpos, (*d).qvel, (*d).ctrl);
                 for i in 0..pd.actuator.len() {
                     let e = *qpos.add(pd.qpos_adr[i]);
@@ -382,16 +504,21 @@ pub mod raw_bench {
                     let tau = pd.kp * (pd.target_rad[i] - e) - pd.kd * v;
                     *ctrl.add(pd.actuator[i]) = tau.clamp(-pd.limit_nm[i], pd.limit_nm[i]);
                 }
-                ffi::mj_step(model.raw(), d);
-            }
+                shim::rall_mj_step(model.raw(), d)
+            };
+            data.guarded(rc, "mj_step")?;
         }
+        Ok(())
     }
 
     /// `n` bare `mj_step` calls with whatever ctrl is set.
-    pub fn raw_steps(model: &Model, data: &mut Data, n: usize) {
+    pub fn raw_steps(model: &Model, data: &mut Data, n: usize) -> Result<()> {
+        data.check_usable(model)?;
         for _ in 0..n {
-            // SAFETY: data was made for model (constructor invariant).
-            unsafe { ffi::mj_step(model.raw(), data.ptr.as_ptr()) };
+            // SAFETY: data belongs to model's family (checked above).
+            let rc = unsafe { shim::rall_mj_step(model.raw(), data.ptr.as_ptr()) };
+            data.guarded(rc, "mj_step")?;
         }
+        Ok(())
     }
 }

@@ -1,4 +1,5 @@
-//! Errors of the simulation layer, and MuJoCo's error/warning hooks.
+//! Errors of the simulation layer, and MuJoCo's warning hook (the error hook is
+//! the C shim's, see `shim.rs`).
 
 use std::cell::RefCell;
 use std::ffi::{c_char, CStr};
@@ -17,8 +18,14 @@ pub enum SimError {
         source_name: String,
         message: String,
     },
-    #[error("MuJoCo error: {0}")]
-    MuJoCo(String),
+    /// MuJoCo raised an error inside `call`; it was left through the shim's
+    /// `longjmp` (src/sim/shim.c), so MuJoCo did not carry on after it.
+    #[error("MuJoCo error in {call}: {message}")]
+    MuJoCo { call: &'static str, message: String },
+    /// A MuJoCo error interrupted a call on this data; its state is undefined
+    /// until the next reset.
+    #[error("the data is unusable after a MuJoCo error ({0}); reset it first")]
+    NeedsReset(String),
     #[error("{kind} named {name:?} not found in the model")]
     UnknownName { kind: &'static str, name: String },
     #[error("physics became unstable at t = {time_s:.3} s: {warnings}")]
@@ -32,59 +39,39 @@ pub enum SimError {
 pub type Result<T> = std::result::Result<T, SimError>;
 
 thread_local! {
-    static LAST_ERROR: RefCell<Option<String>> = const { RefCell::new(None) };
     static LAST_WARNING: RefCell<Option<String>> = const { RefCell::new(None) };
 }
 
-/// MuJoCo calls this instead of `exit(1)`; the message is turned into a
-/// [`SimError::MuJoCo`] by the next [`take_error`] on this thread.
-unsafe extern "C" fn on_mujoco_error(msg: *const c_char) {
-    let text = message_text(msg);
-    LAST_ERROR.with(|e| *e.borrow_mut() = Some(text));
-}
-
+/// Warnings return to MuJoCo normally (it expects them to); the text is kept
+/// for [`take_warning`] on this thread.
 unsafe extern "C" fn on_mujoco_warning(msg: *const c_char) {
-    let text = message_text(msg);
+    let text = if msg.is_null() {
+        "(no message)".to_string()
+    } else {
+        // SAFETY: MuJoCo passes a NUL-terminated string valid for the call.
+        unsafe { CStr::from_ptr(msg) }
+            .to_string_lossy()
+            .trim()
+            .to_string()
+    };
     LAST_WARNING.with(|w| *w.borrow_mut() = Some(text));
 }
 
-unsafe fn message_text(msg: *const c_char) -> String {
-    if msg.is_null() {
-        return "(no message)".into();
-    }
-    // SAFETY: MuJoCo passes a NUL-terminated string valid for the call.
-    unsafe { CStr::from_ptr(msg) }
-        .to_string_lossy()
-        .trim()
-        .to_string()
-}
-
-/// Installs the handlers once per process, before the first MuJoCo call.
+/// Installs MuJoCo's error handler (the shim's, which leaves MuJoCo through
+/// `longjmp`) and warning handler once per process, before the first MuJoCo call.
 pub(crate) fn install_handlers() {
     static ONCE: Once = Once::new();
+    super::shim::install();
     ONCE.call_once(|| {
-        // SAFETY: the globals are plain function pointers read by MuJoCo; we set
-        // them once, before any other MuJoCo call made through this crate.
+        // SAFETY: a plain function pointer read by MuJoCo; set once, before any
+        // other MuJoCo call made through this crate.
         unsafe {
-            ffi::mju_user_error = Some(on_mujoco_error);
             ffi::mju_user_warning = Some(on_mujoco_warning);
         }
     });
 }
 
-/// The MuJoCo error raised on this thread since the last call, if any.
-pub(crate) fn take_error() -> Option<String> {
-    LAST_ERROR.with(|e| e.borrow_mut().take())
-}
-
 /// The last MuJoCo warning text raised on this thread, if any.
 pub fn take_warning() -> Option<String> {
     LAST_WARNING.with(|w| w.borrow_mut().take())
-}
-
-pub(crate) fn check_error() -> Result<()> {
-    match take_error() {
-        Some(msg) => Err(SimError::MuJoCo(msg)),
-        None => Ok(()),
-    }
 }

@@ -3,15 +3,19 @@
 //! - [`Model`] loads MJCF from a path or a string; MuJoCo's errors become [`SimError`].
 //! - [`Data`] holds the state; [`Data::step`] reports instability instead of
 //!   continuing on NaN.
-//! - MuJoCo's error and warning handlers are installed on first use, so a MuJoCo
-//!   error never aborts the process.
+//! - MuJoCo's error and warning handlers are installed on first use. Every MuJoCo
+//!   entry point that can raise an error runs inside a C wrapper (`shim.c`) whose
+//!   `setjmp` the error handler `longjmp`s back to, so an error leaves MuJoCo
+//!   (which assumes `mju_error` never returns) and becomes [`SimError::MuJoCo`].
+//! - A [`Data`] only runs with models of the family it was made for.
 
 mod data;
 mod error;
 mod ffi;
 mod model;
+mod shim;
 
-pub use data::{raw_bench, Contact, Data, Warnings};
+pub use data::{raw_bench, ArenaUse, Contact, Data, Warnings};
 pub use error::{take_warning, Result, SimError};
 pub use model::{GeomShape, JointKind, Model, ObjKind};
 

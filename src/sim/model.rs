@@ -3,9 +3,14 @@
 use std::ffi::{c_char, CStr, CString};
 use std::path::Path;
 use std::ptr::NonNull;
+use std::sync::atomic::{AtomicU64, Ordering};
 
-use super::error::{check_error, install_handlers, Result, SimError};
+use super::error::{install_handlers, Result, SimError};
 use super::ffi;
+use super::shim;
+
+/// Source of model family ids: one per loaded model, shared by its clones.
+static NEXT_FAMILY: AtomicU64 = AtomicU64::new(1);
 
 /// MuJoCo object kinds used for name lookups.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -69,8 +74,15 @@ pub enum GeomShape {
 
 /// An owned MuJoCo model. Freed on drop; `Send + Sync` because MuJoCo never
 /// mutates a model during simulation and we only hand out `&mut` through `&mut self`.
+///
+/// Every loaded model gets a fresh *family* id; [`Model::try_clone`] keeps it.
+/// The safe API only changes values (masses, friction, heights, time step),
+/// never sizes, so all models of one family have the same layout and a
+/// [`super::Data`] made for one of them may be stepped with any of them, and
+/// with no other model (checked exactly on every call).
 pub struct Model {
     ptr: NonNull<ffi::mjModel>,
+    family: u64,
 }
 
 // SAFETY: an mjModel is a plain heap allocation with no thread affinity; shared
@@ -125,14 +137,28 @@ impl Model {
         load(VFS_NAME, Some(&vfs), name)
     }
 
-    /// A deep copy (`mj_copyModel`), e.g. one per environment for domain randomisation.
+    /// A deep copy (`mj_copyModel`) of the same family, e.g. one per worker
+    /// thread for domain randomisation.
     pub fn try_clone(&self) -> Result<Model> {
-        // SAFETY: src is a valid model; dest null asks MuJoCo to allocate.
-        let raw = unsafe { ffi::mj_copyModel(std::ptr::null_mut(), self.ptr.as_ptr()) };
-        check_error()?;
+        install_handlers();
+        let mut raw = std::ptr::null_mut();
+        // SAFETY: src is a valid model; the shim asks MuJoCo to allocate the copy.
+        let rc = unsafe { shim::rall_mj_copyModel(self.ptr.as_ptr(), &mut raw) };
+        shim::check(rc, "mj_copyModel")?;
         NonNull::new(raw)
-            .map(|ptr| Model { ptr })
-            .ok_or_else(|| SimError::MuJoCo("mj_copyModel returned null".into()))
+            .map(|ptr| Model {
+                ptr,
+                family: self.family,
+            })
+            .ok_or_else(|| SimError::MuJoCo {
+                call: "mj_copyModel",
+                message: "returned no model".into(),
+            })
+    }
+
+    /// This model's family id (see the type's documentation).
+    pub fn family(&self) -> u64 {
+        self.family
     }
 
     pub(crate) fn raw(&self) -> *const ffi::mjModel {
@@ -251,6 +277,12 @@ impl Model {
     pub fn body_subtree_mass_kg(&self) -> &[f64] {
         self.reals(self.m().body_subtreemass, self.nbody())
     }
+    /// Subtree masses, writable: keep them equal to the sums of
+    /// [`Model::body_mass_kg`] over each subtree (MuJoCo reads both).
+    pub fn body_subtree_mass_kg_mut(&mut self) -> &mut [f64] {
+        let n = self.nbody();
+        self.reals_mut(self.m().body_subtreemass, n)
+    }
     /// Diagonal inertia in the body's inertial frame (kg m^2).
     pub fn body_inertia(&self) -> &[[f64; 3]] {
         self.vec3s(self.m().body_inertia, self.nbody())
@@ -324,13 +356,21 @@ impl Model {
     /// Geom orientation in its body frame (unit quaternion, w x y z).
     pub fn geom_quat(&self) -> &[[f64; 4]] {
         let n = self.ngeom();
+        let p = self.m().geom_quat;
+        if n == 0 || p.is_null() {
+            return &[];
+        }
         // SAFETY: geom_quat holds 4*ngeom reals.
-        unsafe { std::slice::from_raw_parts(self.m().geom_quat as *const [f64; 4], n) }
+        unsafe { std::slice::from_raw_parts(p as *const [f64; 4], n) }
     }
     pub fn geom_rgba(&self) -> &[[f32; 4]] {
         let n = self.ngeom();
+        let p = self.m().geom_rgba;
+        if n == 0 || p.is_null() {
+            return &[];
+        }
         // SAFETY: geom_rgba holds 4*ngeom floats.
-        unsafe { std::slice::from_raw_parts(self.m().geom_rgba as *const [f32; 4], n) }
+        unsafe { std::slice::from_raw_parts(p as *const [f32; 4], n) }
     }
     /// Sliding, torsional, rolling friction per geom.
     pub fn geom_friction(&self) -> &[[f64; 3]] {
@@ -365,23 +405,45 @@ impl Model {
     /// (radius_x, radius_y, elevation_z, base_z) in metres.
     pub fn hfield_size(&self, h: usize) -> [f64; 4] {
         let n = self.nhfield();
-        // SAFETY: hfield_size holds 4*nhfield reals.
-        let all: &[[f64; 4]] =
-            unsafe { std::slice::from_raw_parts(self.m().hfield_size as *const [f64; 4], n) };
+        let p = self.m().hfield_size;
+        let all: &[[f64; 4]] = if n == 0 || p.is_null() {
+            &[]
+        } else {
+            // SAFETY: hfield_size holds 4*nhfield reals.
+            unsafe { std::slice::from_raw_parts(p as *const [f64; 4], n) }
+        };
         all[h]
     }
     /// Row-major elevation samples of heightfield `h`, each in [0, 1] of `elevation_z`.
     pub fn hfield_data_mut(&mut self, h: usize) -> &mut [f32] {
-        let (rows, cols) = self.hfield_shape(h);
-        let adr = self.ints(self.m().hfield_adr, self.nhfield())[h] as usize;
-        // SAFETY: hfield_data holds nhfielddata floats; [adr, adr+rows*cols) is h's block.
-        unsafe { std::slice::from_raw_parts_mut(self.m().hfield_data.add(adr), rows * cols) }
+        let range = self.hfield_range(h);
+        let n = self.m().nhfielddata.max(0) as usize;
+        let p = self.m().hfield_data;
+        let all: &mut [f32] = if n == 0 || p.is_null() {
+            &mut []
+        } else {
+            // SAFETY: hfield_data holds nhfielddata floats, unique through &mut self.
+            unsafe { std::slice::from_raw_parts_mut(p, n) }
+        };
+        &mut all[range]
     }
     pub fn hfield_data(&self, h: usize) -> &[f32] {
+        let range = self.hfield_range(h);
+        let n = self.m().nhfielddata.max(0) as usize;
+        let p = self.m().hfield_data;
+        let all: &[f32] = if n == 0 || p.is_null() {
+            &[]
+        } else {
+            // SAFETY: hfield_data holds nhfielddata floats.
+            unsafe { std::slice::from_raw_parts(p, n) }
+        };
+        &all[range]
+    }
+    /// Heightfield `h`'s block in `hfield_data` (indexing checked by the caller's slice).
+    fn hfield_range(&self, h: usize) -> std::ops::Range<usize> {
         let (rows, cols) = self.hfield_shape(h);
-        let adr = self.ints(self.m().hfield_adr, self.nhfield())[h] as usize;
-        // SAFETY: as above, shared.
-        unsafe { std::slice::from_raw_parts(self.m().hfield_data.add(adr), rows * cols) }
+        let adr = self.ints(self.m().hfield_adr, self.nhfield())[h].max(0) as usize;
+        adr..adr + rows * cols
     }
 
     // --- keyframes ------------------------------------------------------
@@ -448,41 +510,44 @@ fn load(file: &CStr, vfs: Option<&Vfs>, name: &str) -> Result<Model> {
     install_handlers();
     let mut err = [0 as c_char; LOAD_ERROR_LEN];
     let vfs_ptr = vfs.map_or(std::ptr::null(), |v| v.raw());
+    let mut raw = std::ptr::null_mut();
     // SAFETY: valid C strings and an error buffer of the declared length.
-    let raw = unsafe {
-        ffi::mj_loadXML(
+    let rc = unsafe {
+        shim::rall_mj_loadXML(
             file.as_ptr(),
             vfs_ptr,
             err.as_mut_ptr(),
             LOAD_ERROR_LEN as i32,
+            &mut raw,
         )
     };
-    // SAFETY: MuJoCo NUL-terminates the error buffer.
+    if rc != 0 {
+        // MuJoCo raised an error through its handler (left via the shim); the
+        // partial model, if any, is lost rather than trusted.
+        return Err(SimError::Load {
+            source_name: name.into(),
+            message: shim::last_error(),
+        });
+    }
+    // SAFETY: the buffer was zeroed and MuJoCo writes at most LOAD_ERROR_LEN - 1
+    // characters; the last byte stays NUL.
+    err[LOAD_ERROR_LEN - 1] = 0;
     let message = unsafe { CStr::from_ptr(err.as_ptr()) }
         .to_string_lossy()
         .trim()
         .to_string();
-    let handler_error = super::error::take_error();
     match NonNull::new(raw) {
-        Some(ptr) => {
-            if let Some(e) = handler_error {
-                drop(Model { ptr });
-                return Err(SimError::Load {
-                    source_name: name.into(),
-                    message: e,
-                });
-            }
-            Ok(Model { ptr })
-        }
+        Some(ptr) => Ok(Model {
+            ptr,
+            family: NEXT_FAMILY.fetch_add(1, Ordering::Relaxed),
+        }),
         None => Err(SimError::Load {
             source_name: name.into(),
-            message: handler_error.filter(|_| message.is_empty()).unwrap_or(
-                if message.is_empty() {
-                    "unknown error".into()
-                } else {
-                    message
-                },
-            ),
+            message: if message.is_empty() {
+                "unknown error".into()
+            } else {
+                message
+            },
         }),
     }
 }

@@ -183,7 +183,7 @@ fn log_mesh(rec: &RecordingStream, path: &str, m: &TriMesh) -> Result<()> {
 
 /// Entity path of body `b` under `world/robot`.
 pub fn body_path(robot: &Robot, b: usize) -> String {
-    let name = robot.model.name(ObjKind::Body, b);
+    let name = robot.model().name(ObjKind::Body, b);
     if name.is_empty() {
         format!("world/robot/body_{b}")
     } else {
@@ -202,7 +202,7 @@ impl EpisodeLogger {
         probe: ValueProbe,
     ) -> Result<EpisodeLogger> {
         rec.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;
-        let m = &robot.model;
+        let m = robot.model();
         let mut bodies = Vec::new();
         // Bodies that carry geoms (plus the trunk), in model order; the world body's
         // ground geoms are logged as terrain.
@@ -415,7 +415,7 @@ impl EpisodeLogger {
         let c = &mut self.cols;
         c.time_s.push(self.time_s);
         c.step.push(self.step);
-        let (xpos, xquat) = (robot.data.xpos(), robot.data.xquat());
+        let (xpos, xquat) = (robot.data().xpos(), robot.data().xquat());
         for (i, (b, _)) in self.bodies.iter().enumerate() {
             let p = xpos[*b];
             c.body_pos[i].push([p[0] as f32, p[1] as f32, p[2] as f32]);
@@ -770,7 +770,7 @@ fn f32x3(v: [f64; 3]) -> [f32; 3] {
 /// World-frame linear velocity of the trunk (free joint qvel).
 fn base_vel_world(robot: &Robot) -> [f64; 3] {
     let a = robot.layout.root_dof_adr;
-    let q = robot.data.qvel();
+    let q = robot.data().qvel();
     [q[a], q[a + 1], q[a + 2]]
 }
 
