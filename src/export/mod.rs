@@ -433,7 +433,7 @@ pub fn export_learner(
         net.act_dim()
     );
     let scene = build_scene(env, config.runner.seed)?;
-    let robot = Robot::new(scene.model, env.control.clone())?;
+    let robot = Robot::new(scene.model.try_clone()?, env.control.clone())?;
     let names = robot.layout.joint_names.clone();
     let default_q = robot.default_q_rad;
     let c = &env.control;
