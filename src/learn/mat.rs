@@ -161,58 +161,41 @@ pub fn gemm(
     // a: max (m-1)*a_rs + (k-1)*a_cs < m*k, same for b and c; `c` is exclusive.
     // Both crates take the same arguments (dst, its column/row strides, read_dst,
     // lhs, rhs, alpha, beta, conjugations, parallelism).
+    // One call shape for both crates: `c = 1 * c (if accumulate) + 1 * a b`, no
+    // conjugation, single-threaded inside `serial`.
+    macro_rules! call {
+        ($krate:ident) => {
+            $krate::gemm(
+                m,
+                n,
+                k,
+                c,
+                1,
+                n_rs,
+                accumulate,
+                a,
+                a_cs,
+                a_rs,
+                b,
+                b_cs,
+                b_rs,
+                1.0,
+                1.0,
+                false,
+                false,
+                false,
+                if serial {
+                    $krate::Parallelism::None
+                } else {
+                    $krate::Parallelism::Rayon(0)
+                },
+            )
+        };
+    }
     unsafe {
         match kernels() {
-            Kernels::Auto => gemm::gemm(
-                m,
-                n,
-                k,
-                c,
-                1,
-                n_rs,
-                accumulate,
-                a,
-                a_cs,
-                a_rs,
-                b,
-                b_cs,
-                b_rs,
-                1.0,
-                1.0,
-                false,
-                false,
-                false,
-                if serial {
-                    gemm::Parallelism::None
-                } else {
-                    gemm::Parallelism::Rayon(0)
-                },
-            ),
-            Kernels::Legacy => gemm_legacy::gemm(
-                m,
-                n,
-                k,
-                c,
-                1,
-                n_rs,
-                accumulate,
-                a,
-                a_cs,
-                a_rs,
-                b,
-                b_cs,
-                b_rs,
-                1.0,
-                1.0,
-                false,
-                false,
-                false,
-                if serial {
-                    gemm_legacy::Parallelism::None
-                } else {
-                    gemm_legacy::Parallelism::Rayon(0)
-                },
-            ),
+            Kernels::Auto => call!(gemm),
+            Kernels::Legacy => call!(gemm_legacy),
         }
     }
 }
