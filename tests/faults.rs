@@ -9,28 +9,18 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use rall::config::TrainConfig;
-use rall::env::terrain::TerrainKind;
 use rall::learn::CriticKind;
 use rall::runner::{load_policy, LATEST};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// A tiny run config written to `dir/tiny.toml` (8 robots, small networks).
+mod common;
+use common::tiny_config;
+
+/// The tests' tiny run config (IQN, one thread) written to `dir/tiny.toml`.
 fn tiny_config_file(dir: &Path, iterations: usize) -> PathBuf {
-    let mut c = TrainConfig::default();
-    c.env.robot_mjcf = concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml").into();
-    c.env.terrain.kind = TerrainKind::Flat;
-    c.env.episode.length_s = 0.5;
-    c.learner.critic = CriticKind::Iqn;
-    c.learner.actor_hidden = vec![32, 32];
-    c.learner.critic_hidden = vec![32, 32];
-    c.learner.num_taus = 8;
-    c.learner.num_target_taus = 8;
-    c.learner.num_value_taus = 8;
-    c.runner.num_envs = 8;
-    c.runner.steps_per_env = 8;
+    let mut c = tiny_config(CriticKind::Iqn);
     c.runner.iterations = iterations;
-    c.runner.save_interval = 1;
     c.runner.log_interval = 1;
     c.runner.threads = 1;
     let path = dir.join("tiny.toml");
@@ -99,7 +89,7 @@ fn all_checkpoints_load(run: &Path) -> usize {
 #[test]
 fn kill_9_at_random_moments_never_corrupts_and_the_run_resumes() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = tiny_config_file(dir.path(), 1000);
+    let cfg = tiny_config_file(dir.path(), 100_000);
     let run = dir.path().join("run");
     let run_s = run.to_str().unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
