@@ -29,6 +29,10 @@ pub struct ObservationConfig {
     pub noise_level: f64,
     /// Observations are clipped to +-clip after scaling.
     pub clip: f64,
+    /// The groups the env writes into each observation row, in order.
+    pub groups: Vec<super::observation::ObsGroup>,
+    /// Policy observations kept in the `history` group (RMA: 50).
+    pub history_steps: usize,
 }
 
 impl Default for ObservationConfig {
@@ -51,6 +55,8 @@ impl Default for ObservationConfig {
             },
             noise_level: 1.0,
             clip: 100.0,
+            groups: vec![super::observation::ObsGroup::Policy],
+            history_steps: 50,
         }
     }
 }
@@ -243,6 +249,14 @@ pub struct RandomizationConfig {
     pub friction: Option<[f64; 2]>,
     /// Mass added to the trunk (kg), U[lo, hi]; `None` keeps the model's.
     pub added_base_mass_kg: Option<[f64; 2]>,
+    /// Torque multiplier of each motor, drawn per motor, U[lo, hi]; `None`: 1.
+    pub motor_strength: Option<[f64; 2]>,
+    /// Multiplier of the PD stiffness Kp, U[lo, hi]; `None`: 1.
+    pub kp_factor: Option<[f64; 2]>,
+    /// Multiplier of the PD damping Kd, U[lo, hi]; `None`: 1.
+    pub kd_factor: Option<[f64; 2]>,
+    /// Offset of the trunk's centre of mass along each body axis (m), U[lo, hi]; `None`: 0.
+    pub com_offset_m: Option<[f64; 2]>,
     pub push: PushConfig,
 }
 
@@ -251,6 +265,10 @@ impl Default for RandomizationConfig {
         RandomizationConfig {
             friction: Some([0.5, 1.5]),
             added_base_mass_kg: Some([-0.5, 1.0]),
+            motor_strength: None,
+            kp_factor: None,
+            kd_factor: None,
+            com_offset_m: None,
             push: PushConfig::VelocityKick {
                 interval_s: 5.0,
                 max_mps: 1.0,
@@ -328,6 +346,23 @@ impl EnvConfig {
         }
         check(o.clip > 0.0, "observation.clip", "must be positive")?;
         check(
+            o.groups.contains(&super::observation::ObsGroup::Policy),
+            "observation.groups",
+            format!("must include \"policy\", got {:?}", o.groups),
+        )?;
+        for (i, g) in o.groups.iter().enumerate() {
+            check(
+                !o.groups[..i].contains(g),
+                "observation.groups",
+                format!("lists {:?} twice", g.name()),
+            )?;
+        }
+        check(
+            (1..=1000).contains(&o.history_steps),
+            "observation.history_steps",
+            format!("must be in 1..=1000, got {}", o.history_steps),
+        )?;
+        check(
             self.reward.tracking_sigma > 0.0,
             "reward.tracking_sigma",
             "must be positive",
@@ -377,6 +412,24 @@ impl EnvConfig {
         if let Some(m) = r.added_base_mass_kg {
             check_range(m, "randomization.added_base_mass_kg")?;
         }
+        for (key, range) in [
+            ("randomization.motor_strength", r.motor_strength),
+            ("randomization.kp_factor", r.kp_factor),
+            ("randomization.kd_factor", r.kd_factor),
+        ] {
+            if let Some(f) = range {
+                check_range(f, key)?;
+                check(f[0] > 0.0, key, format!("must be > 0, got {f:?}"))?;
+            }
+        }
+        if let Some(c) = r.com_offset_m {
+            check_range(c, "randomization.com_offset_m")?;
+            check(
+                c[0].abs().max(c[1].abs()) <= 0.3,
+                "randomization.com_offset_m",
+                format!("must stay within +-0.3 m of the trunk's centre, got {c:?}"),
+            )?;
+        }
         match r.push {
             PushConfig::None => {}
             PushConfig::VelocityKick {
@@ -410,6 +463,16 @@ impl EnvConfig {
         }
         self.terrain.validate()?;
         Ok(())
+    }
+
+    /// Values in one observation row (all configured groups).
+    pub fn obs_width(&self) -> usize {
+        self.obs_layout().width()
+    }
+
+    /// The observation row's groups and widths.
+    pub fn obs_layout(&self) -> crate::learn::ObsLayout {
+        super::observation::obs_layout(&self.observation)
     }
 
     /// Policy steps per episode.

@@ -9,6 +9,7 @@
 pub mod bench;
 pub mod config;
 pub mod observation;
+pub mod privileged;
 pub mod reward;
 pub mod risk;
 mod scene;
@@ -18,7 +19,7 @@ pub mod terrain;
 mod vec_env;
 
 pub use config::EnvConfig;
-pub use observation::{ACT_DIM, OBS_DIM, OBS_LAYOUT};
+pub use observation::{obs_layout, ObsGroup, ACT_DIM, OBS_DIM, OBS_LAYOUT};
 pub use scene::{build_scene, Scene};
 pub use single::{Env, EpisodeDraw, EpisodeEnd, EpisodeSummary, ForcePush, StepResult};
 pub use vec_env::{Batch, ModelSharing, StepTimes, VecEnv};

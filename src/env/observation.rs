@@ -2,6 +2,7 @@
 
 use rand::Rng;
 use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
 
 use super::config::ObservationConfig;
 use super::state::RobotState;
@@ -82,4 +83,58 @@ pub fn write_observation<R: Rng>(
         put(a as f64, 1.0, 0.0, &mut rng);
     }
     debug_assert_eq!(i, OBS_DIM);
+}
+
+/// A named block of the observation row. The env writes the groups its config
+/// lists, in that order; which group feeds which network is the learner's
+/// configuration (`actor_inputs`, `critic_inputs`, `encoder`, `adaptation`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ObsGroup {
+    /// The paper's 48 proprioceptive values (what the robot measures).
+    Policy,
+    /// What a teacher may know: this episode's randomised parameters, the push
+    /// in effect, the true base velocity and the ground under the feet.
+    Privileged,
+    /// The last `history_steps` policy observations, newest first (each holds
+    /// the action before it), zeros before the episode's first step.
+    History,
+}
+
+impl ObsGroup {
+    pub fn name(self) -> &'static str {
+        match self {
+            ObsGroup::Policy => "policy",
+            ObsGroup::Privileged => "privileged",
+            ObsGroup::History => "history",
+        }
+    }
+
+    /// Values in this group.
+    pub fn width(self, history_steps: usize) -> usize {
+        match self {
+            ObsGroup::Policy => OBS_DIM,
+            ObsGroup::Privileged => super::privileged::PRIVILEGED_DIM,
+            ObsGroup::History => history_steps * OBS_DIM,
+        }
+    }
+
+    /// Field names, widths and scales, for checkpoints and exports.
+    pub fn fields_string(self, history_steps: usize) -> String {
+        match self {
+            ObsGroup::Policy => layout_string(),
+            ObsGroup::Privileged => super::privileged::layout_string(),
+            ObsGroup::History => format!("{history_steps}x[policy, newest first]"),
+        }
+    }
+}
+
+/// The observation layout an env config produces.
+pub fn obs_layout(cfg: &ObservationConfig) -> crate::learn::ObsLayout {
+    crate::learn::ObsLayout::from_groups(
+        cfg.groups
+            .iter()
+            .map(|g| (g.name().to_string(), g.width(cfg.history_steps)))
+            .collect(),
+    )
 }

@@ -8,7 +8,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::config::{EnvConfig, PushConfig};
-use super::observation::{write_observation, ACT_DIM, OBS_DIM};
+use super::observation::{write_observation, ObsGroup, ACT_DIM, OBS_DIM};
+use super::privileged::PrivilegedState;
 use super::reward::{reward_terms, RewardInputs, NUM_REWARD_TERMS};
 use super::risk::{evaluate_risk, RiskOutcome, NUM_RISK_TERMS};
 use super::state::{roll_pitch_yaw, rotate_inverse, RobotState};
@@ -23,6 +24,26 @@ pub struct EpisodeDraw {
     pub friction: Option<f64>,
     /// Mass added to the trunk (kg).
     pub added_base_mass_kg: f64,
+    /// Torque multiplier of each motor, SDK order.
+    pub motor_strength: [f64; NUM_JOINTS],
+    /// Multipliers of the PD gains.
+    pub kp_factor: f64,
+    pub kd_factor: f64,
+    /// Trunk centre-of-mass offset in the body frame (m).
+    pub com_offset_m: [f64; 3],
+}
+
+impl Default for EpisodeDraw {
+    fn default() -> Self {
+        EpisodeDraw {
+            friction: None,
+            added_base_mass_kg: 0.0,
+            motor_strength: [1.0; NUM_JOINTS],
+            kp_factor: 1.0,
+            kd_factor: 1.0,
+            com_offset_m: [0.0; 3],
+        }
+    }
 }
 
 /// Why an episode ended.
@@ -89,6 +110,8 @@ pub struct Env {
     /// Body and subtree masses in the unrandomised model (kg).
     base_body_mass_kg: Vec<f64>,
     base_subtree_mass_kg: Vec<f64>,
+    /// Trunk centre of mass in the unrandomised model (m, body frame).
+    base_trunk_ipos_m: [f64; 3],
     /// The trunk and its ancestors: the subtrees that carry added trunk mass.
     trunk_chain: Vec<usize>,
     max_steps: usize,
@@ -105,6 +128,12 @@ pub struct Env {
     pub terrain_level: usize,
     pub terrain_type: usize,
     force_push: ForcePush,
+    /// The push of the current step, for the privileged group.
+    push_force_now_n: [f64; 3],
+    kick_now_mps: [f64; 2],
+    /// This step's policy observation and (newest first) the `history` group.
+    policy_obs: [f32; OBS_DIM],
+    history: Vec<f32>,
     commanded_distance_m: f64,
     sums: EpisodeSummary,
     /// Physics failures since creation.
@@ -162,6 +191,13 @@ impl Env {
         let base_friction = base.geom_friction().to_vec();
         let base_body_mass_kg = base.body_mass_kg().to_vec();
         let base_subtree_mass_kg = base.body_subtree_mass_kg().to_vec();
+        let base_trunk_ipos_m = base.body_ipos_m()[robot.layout.trunk_body];
+        let o = &cfg.observation;
+        let history_len = if o.groups.contains(&ObsGroup::History) {
+            o.history_steps * OBS_DIM
+        } else {
+            0
+        };
         let mut trunk_chain = vec![robot.layout.trunk_body];
         while let Some(&b) = trunk_chain.last().filter(|&&b| b != 0) {
             trunk_chain.push(robot.model().body_parent(b));
@@ -178,12 +214,10 @@ impl Env {
             base_friction,
             base_body_mass_kg,
             base_subtree_mass_kg,
+            base_trunk_ipos_m,
             trunk_chain,
             max_steps,
-            draw: EpisodeDraw {
-                friction: None,
-                added_base_mass_kg: 0.0,
-            },
+            draw: EpisodeDraw::default(),
             command: [0.0; 3],
             action: [0.0; ACT_DIM],
             previous_action: [0.0; ACT_DIM],
@@ -195,6 +229,10 @@ impl Env {
             terrain_level: 0,
             terrain_type: 0,
             force_push: ForcePush::default(),
+            push_force_now_n: [0.0; 3],
+            kick_now_mps: [0.0; 2],
+            policy_obs: [0.0; OBS_DIM],
+            history: vec![0.0; history_len],
             commanded_distance_m: 0.0,
             sums: empty_summary(index),
             instabilities: 0,
@@ -218,6 +256,10 @@ impl Env {
         self.last_summary.take()
     }
 
+    /// Values per observation row (all configured groups).
+    pub fn obs_width(&self) -> usize {
+        self.cfg.obs_width()
+    }
     pub fn config(&self) -> &EnvConfig {
         &self.cfg
     }
@@ -270,6 +312,9 @@ impl Env {
         self.feet_air_time_s = [0.0; 4];
         self.step_in_episode = 0;
         self.force_push = ForcePush::default();
+        self.push_force_now_n = [0.0; 3];
+        self.kick_now_mps = [0.0; 2];
+        self.history.fill(0.0);
         self.commanded_distance_m = 0.0;
         self.sums = empty_summary(self.index);
         self.sums.terrain_level = self.terrain_level;
@@ -288,10 +333,32 @@ impl Env {
         let added = r
             .added_base_mass_kg
             .map_or(0.0, |[lo, hi]| self.rng.gen_range(lo..=hi));
+        // drawn only when configured, so that configs without them keep their random stream
+        let motor_strength = match r.motor_strength {
+            Some([lo, hi]) => std::array::from_fn(|_| self.rng.gen_range(lo..=hi)),
+            None => [1.0; NUM_JOINTS],
+        };
+        let kp_factor = r
+            .kp_factor
+            .map_or(1.0, |[lo, hi]| self.rng.gen_range(lo..=hi));
+        let kd_factor = r
+            .kd_factor
+            .map_or(1.0, |[lo, hi]| self.rng.gen_range(lo..=hi));
+        let com_offset_m = match r.com_offset_m {
+            Some([lo, hi]) => std::array::from_fn(|_| self.rng.gen_range(lo..=hi)),
+            None => [0.0; 3],
+        };
         self.draw = EpisodeDraw {
             friction,
             added_base_mass_kg: added,
+            motor_strength,
+            kp_factor,
+            kd_factor,
+            com_offset_m,
         };
+        self.robot.motor_strength = motor_strength;
+        self.robot.control.kp_nm_per_rad = self.cfg.control.kp_nm_per_rad * kp_factor;
+        self.robot.control.kd_nm_s_per_rad = self.cfg.control.kd_nm_s_per_rad * kd_factor;
         let trunk = self.robot.layout.trunk_body;
         let params = self.robot.params_mut();
         for (g, base) in params
@@ -309,6 +376,10 @@ impl Env {
         subtree.copy_from_slice(&self.base_subtree_mass_kg);
         for &b in &self.trunk_chain {
             subtree[b] += added;
+        }
+        let ipos = &mut params.body_ipos_m_mut()[trunk];
+        for (axis, p) in ipos.iter_mut().enumerate() {
+            *p = self.base_trunk_ipos_m[axis] + com_offset_m[axis];
         }
     }
 
@@ -474,6 +545,8 @@ impl Env {
 
     fn apply_pushes(&mut self) -> bool {
         let trunk = self.robot.layout.trunk_body;
+        self.kick_now_mps = [0.0; 2];
+        self.push_force_now_n = [0.0; 3];
         match self.cfg.randomization.push {
             PushConfig::None => false,
             PushConfig::VelocityKick {
@@ -484,7 +557,7 @@ impl Env {
                     .round()
                     .max(1.0) as usize;
                 if self.step_in_episode > 0 && self.step_in_episode.is_multiple_of(every) {
-                    self.random_kick(max_mps);
+                    self.kick_now_mps = self.random_kick(max_mps);
                     true
                 } else {
                     false
@@ -514,6 +587,7 @@ impl Env {
                 if self.force_push.steps_left > 0 {
                     frc[..3].copy_from_slice(&self.force_push.force_n);
                     self.force_push.steps_left -= 1;
+                    self.push_force_now_n = self.force_push.force_n;
                 } else {
                     frc[..3].fill(0.0);
                 }
@@ -617,8 +691,32 @@ impl Env {
         s
     }
 
+    /// The privileged group's contents now (physical units).
+    pub fn privileged_state(&self) -> PrivilegedState {
+        let base = self.robot.base_pos_m();
+        let feet = self.robot.layout.foot_geoms;
+        let xpos = self.robot.data().geom_xpos();
+        let ground = |x: f64, y: f64| self.terrain.as_ref().map_or(0.0, |t| t.height_at(x, y));
+        PrivilegedState {
+            draw: self.draw,
+            push_force_world_n: self.push_force_now_n,
+            push_kick_world_mps: self.kick_now_mps,
+            base_lin_vel_body_mps: self.state.base_lin_vel_body_mps,
+            ground_under_feet_minus_base_z_m: std::array::from_fn(|leg| {
+                let p = xpos[feet[leg]];
+                ground(p[0], p[1]) - base[2]
+            }),
+        }
+    }
+
+    /// The `history` group as it stands (newest first; empty when not configured).
+    pub fn history(&self) -> &[f32] {
+        &self.history
+    }
+
+    /// Writes the observation row: each configured group in order. The policy
+    /// observation also enters the history (the robot's own noisy readings).
     fn observe(&mut self, out: &mut [f32]) {
-        debug_assert_eq!(out.len(), OBS_DIM);
         let rng = Some(&mut self.rng);
         write_observation(
             &self.state,
@@ -627,8 +725,25 @@ impl Env {
             &self.robot.default_q_rad,
             &self.cfg.observation,
             rng,
-            out,
+            &mut self.policy_obs,
         );
+        if !self.history.is_empty() {
+            let n = self.history.len();
+            self.history.copy_within(0..n - OBS_DIM, OBS_DIM);
+            self.history[..OBS_DIM].copy_from_slice(&self.policy_obs);
+        }
+        let mut at = 0;
+        for &g in &self.cfg.observation.groups {
+            let w = g.width(self.cfg.observation.history_steps);
+            let dst = &mut out[at..at + w];
+            match g {
+                ObsGroup::Policy => dst.copy_from_slice(&self.policy_obs),
+                ObsGroup::Privileged => self.privileged_state().write(dst),
+                ObsGroup::History => dst.copy_from_slice(&self.history),
+            }
+            at += w;
+        }
+        debug_assert_eq!(at, out.len());
     }
 }
 

@@ -8,7 +8,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::config::EnvConfig;
-use super::observation::{ACT_DIM, OBS_DIM};
+use super::observation::ACT_DIM;
 use super::risk::NUM_RISK_TERMS;
 use super::single::{Env, EpisodeSummary};
 use super::terrain::{Curriculum, Terrain};
@@ -17,14 +17,14 @@ use crate::sim::{ArenaUse, Model, Result, SimError};
 /// Batched outputs of one step, row-major (env-major).
 #[derive(Debug, Clone)]
 pub struct Batch {
-    /// [n x OBS_DIM] observations after the step (new episode's first after a reset).
+    /// [n x obs_width] observations after the step (new episode's first after a reset).
     pub obs: Vec<f32>,
     pub rewards: Vec<f32>,
     /// The episode ended this step (termination or time-out).
     pub dones: Vec<bool>,
     /// It ended by time-out (the learner bootstraps from `final_obs`).
     pub time_outs: Vec<bool>,
-    /// [n x OBS_DIM]: the true last observation of an episode that ended this
+    /// [n x obs_width]: the true last observation of an episode that ended this
     /// step (valid where `dones` is set; zeros after a physics failure).
     pub final_obs: Vec<f32>,
     /// Risk thresholds exceeded / penalties fired this step, summed over envs.
@@ -34,13 +34,13 @@ pub struct Batch {
 }
 
 impl Batch {
-    fn new(n: usize) -> Batch {
+    fn new(n: usize, width: usize) -> Batch {
         Batch {
-            obs: vec![0.0; n * OBS_DIM],
+            obs: vec![0.0; n * width],
             rewards: vec![0.0; n],
             dones: vec![false; n],
             time_outs: vec![false; n],
-            final_obs: vec![0.0; n * OBS_DIM],
+            final_obs: vec![0.0; n * width],
             risk_exceeded: [0; NUM_RISK_TERMS],
             risk_fired: [0; NUM_RISK_TERMS],
             pushes: 0,
@@ -81,6 +81,8 @@ pub struct VecEnv {
     batch: Batch,
     /// Episodes finished since the last [`VecEnv::drain_episodes`].
     episodes: Vec<EpisodeSummary>,
+    /// Values per observation row.
+    obs_width: usize,
 }
 
 impl VecEnv {
@@ -146,7 +148,8 @@ impl VecEnv {
             times: StepTimes::default(),
             curriculum,
             pool,
-            batch: Batch::new(n),
+            batch: Batch::new(n, cfg.obs_width()),
+            obs_width: cfg.obs_width(),
             episodes: Vec::with_capacity(4 * n),
         };
         v.sync_terrain_cells();
@@ -154,6 +157,10 @@ impl VecEnv {
         Ok(v)
     }
 
+    /// Values per observation row (all configured groups).
+    pub fn obs_width(&self) -> usize {
+        self.obs_width
+    }
     pub fn num_envs(&self) -> usize {
         self.envs.len()
     }
@@ -179,10 +186,11 @@ impl VecEnv {
     /// Resets every env and fills `batch().obs`.
     pub fn reset_all(&mut self) -> Result<()> {
         let obs = &mut self.batch.obs;
+        let width = self.obs_width;
         self.pool.install(|| {
             self.envs
                 .par_iter_mut()
-                .zip(obs.par_chunks_mut(OBS_DIM))
+                .zip(obs.par_chunks_mut(width))
                 .try_for_each(|(env, o)| env.reset(o))
         })
     }
@@ -202,13 +210,14 @@ impl VecEnv {
             "actions must be n_envs x {ACT_DIM}"
         );
         let start = Instant::now();
+        let width = self.obs_width;
         let b = &mut self.batch;
         self.pool.install(|| {
             self.envs
                 .par_iter_mut()
                 .zip(actions.par_chunks(ACT_DIM))
-                .zip(b.obs.par_chunks_mut(OBS_DIM))
-                .zip(b.final_obs.par_chunks_mut(OBS_DIM))
+                .zip(b.obs.par_chunks_mut(width))
+                .zip(b.final_obs.par_chunks_mut(width))
                 .zip(b.rewards.par_iter_mut())
                 .zip(b.dones.par_iter_mut())
                 .zip(b.time_outs.par_iter_mut())
@@ -259,7 +268,7 @@ impl VecEnv {
         self.pool.install(|| {
             self.envs
                 .par_iter_mut()
-                .zip(obs.par_chunks_mut(OBS_DIM))
+                .zip(obs.par_chunks_mut(width))
                 .filter(|(env, _)| env.last_step.done)
                 .for_each(|(env, o)| {
                     if env.reset(o).is_err() {

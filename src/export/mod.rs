@@ -376,8 +376,8 @@ fn reference_pairs(
     cfg.observation.noise_level = 0.0;
     let scene = build_scene(&cfg, seed)?;
     let mut env = Env::new(Arc::new(cfg), &scene.model, None, seed, 0)?;
-    let mut obs = vec![0.0f32; OBS_DIM];
-    let mut final_obs = vec![0.0f32; OBS_DIM];
+    let mut obs = vec![0.0f32; env.obs_width()];
+    let mut final_obs = vec![0.0f32; env.obs_width()];
     env.reset(&mut obs)?;
     let every = 10;
     let mut out = Vec::with_capacity(count * OBS_DIM);
@@ -425,6 +425,14 @@ pub fn export_learner(
     opts: &ExportOptions,
 ) -> Result<ExportReport> {
     let env = &config.env;
+    let groups = env.obs_layout();
+    ensure!(
+        groups.names() == ["policy"] && config.learner.encoder.is_none(),
+        "{}: the policy reads observation groups [{}]{}; export supports policies on the `policy` group alone so far (an RMA student's history input is not exported yet)",
+        checkpoint.display(),
+        groups.names().join(", "),
+        if config.learner.encoder.is_some() { " and a latent" } else { "" }
+    );
     let norm = ObsNormalizer::identity(learner.obs_dim());
     let net = PolicyNet::from_learner(learner, &norm)?;
     ensure!(

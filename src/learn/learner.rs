@@ -3,7 +3,9 @@
 
 use super::actor_critic::{ActorCritic, Critic};
 use super::adam::AdamState;
-use super::nets::{GaussianActor, IqnCritic, ParamSet, ScalarCritic};
+use super::adaptation::{self, adaptation_offset, AdaptationOptimizer};
+use super::layout::ObsLayout;
+use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
 use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
 use super::risk::Distortion;
 use super::storage::{ActOutput, Rollout};
@@ -20,6 +22,57 @@ pub enum CriticKind {
     Iqn,
     /// Scalar `V(s)` (risk-neutral PPO baseline).
     Scalar,
+}
+
+/// RMA's encoder: `z = MLP(group)`, appended to the actor's inputs (phase 1).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EncoderConfig {
+    /// Observation group the encoder reads (RMA: the privileged environment factors).
+    pub input: String,
+    /// Hidden sizes (ELU); RMA's code: 256-128.
+    pub hidden: Vec<usize>,
+    /// Latent size; RMA: 8.
+    pub latent_dim: usize,
+}
+
+impl Default for EncoderConfig {
+    fn default() -> Self {
+        EncoderConfig {
+            input: "privileged".into(),
+            hidden: vec![256, 128],
+            latent_dim: 8,
+        }
+    }
+}
+
+/// RMA phase 2: the adaptation module regresses the encoder's `z` from the
+/// history, on rollouts its own estimate drives through the frozen base policy.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AdaptationConfig {
+    /// Observation group it reads (the proprioceptive history).
+    pub input: String,
+    /// Hidden sizes (ELU) of the MLP over the flattened history (walk-these-ways style).
+    pub hidden: Vec<usize>,
+    /// Phase-2 iterations (each: one rollout of num_envs x steps_per_env, then regression).
+    pub iterations: usize,
+    pub learning_rate: f32,
+    pub epochs: usize,
+    pub mini_batches: usize,
+}
+
+impl Default for AdaptationConfig {
+    fn default() -> Self {
+        AdaptationConfig {
+            input: "history".into(),
+            hidden: vec![256, 128],
+            iterations: 500,
+            learning_rate: 5e-4,
+            epochs: 4,
+            mini_batches: 4,
+        }
+    }
 }
 
 /// RALL's CVaR level (the paper: eta 0.5).
@@ -56,6 +109,17 @@ pub struct LearnerConfig {
     pub kappa: f32,
     /// Horizon parameter of the IQN targets (`storage` docs); 0 = 1-step targets.
     pub target_lambda: f32,
+    /// Observation groups the actor reads directly, in order.
+    pub actor_inputs: Vec<String>,
+    /// Observation groups the critic reads, in order (e.g. add "privileged" for
+    /// an asymmetric critic).
+    pub critic_inputs: Vec<String>,
+    /// RMA's encoder of privileged information (phase 1); `None`: no latent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub encoder: Option<EncoderConfig>,
+    /// RMA's adaptation module (phase 2); needs `encoder`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adaptation: Option<AdaptationConfig>,
 }
 
 impl Default for LearnerConfig {
@@ -74,6 +138,10 @@ impl Default for LearnerConfig {
             num_value_taus: 64,
             kappa: 1.0,
             target_lambda: 0.95,
+            actor_inputs: vec!["policy".into()],
+            critic_inputs: vec!["policy".into()],
+            encoder: None,
+            adaptation: None,
         }
     }
 }
@@ -147,6 +215,26 @@ impl LearnerConfig {
             self.ppo.num_mini_batches > 0,
             "num_mini_batches must be positive"
         );
+        ensure!(
+            !self.actor_inputs.is_empty() && !self.critic_inputs.is_empty(),
+            "learner.actor_inputs and learner.critic_inputs must name at least one observation group"
+        );
+        if let Some(e) = &self.encoder {
+            ensure!(
+                e.latent_dim > 0,
+                "learner.encoder.latent_dim must be positive"
+            );
+        }
+        if let Some(a) = &self.adaptation {
+            ensure!(
+                self.encoder.is_some(),
+                "learner.adaptation regresses the encoder's latent: it needs learner.encoder"
+            );
+            ensure!(
+                a.learning_rate > 0.0 && a.epochs > 0 && a.mini_batches > 0,
+                "learner.adaptation: learning_rate, epochs and mini_batches must be positive"
+            );
+        }
         Ok(())
     }
 }
@@ -167,41 +255,97 @@ pub struct Learner {
     rng: ChaCha8Rng,
     /// The update's buffers, reused between updates.
     ws: Workspace,
+    /// RMA phase 2's optimizer (with `adaptation` configured).
+    adapt_opt: Option<AdaptationOptimizer>,
 }
 
 impl Learner {
-    /// Builds the networks from `seed` (ChaCha8): same seed, same weights.
+    /// Builds the networks from `seed` (ChaCha8): same seed, same weights. The
+    /// observation row is one group, "policy", of `obs_dim` values.
     pub fn new(obs_dim: usize, act_dim: usize, cfg: &LearnerConfig, seed: u64) -> Result<Self> {
+        Learner::with_layout(&ObsLayout::policy_only(obs_dim), act_dim, cfg, seed)
+    }
+
+    /// Builds the networks over an observation row of named groups: each network
+    /// reads the groups its config names (an unknown group is refused, named).
+    pub fn with_layout(
+        layout: &ObsLayout,
+        act_dim: usize,
+        cfg: &LearnerConfig,
+        seed: u64,
+    ) -> Result<Self> {
         cfg.validate()?;
+        let obs_dim = layout.width();
         ensure!(
             obs_dim > 0 && act_dim > 0,
             "obs_dim and act_dim must be positive"
         );
+        let select = |groups: &[String], who: &str| -> Result<InputSel> {
+            let ranges = groups
+                .iter()
+                .map(|g| layout.require(g, who))
+                .collect::<Result<Vec<_>>>()?;
+            Ok(InputSel {
+                ranges,
+                row_width: obs_dim,
+            })
+        };
+        let actor_in = select(&cfg.actor_inputs, "learner.actor_inputs")?;
+        let critic_in = select(&cfg.critic_inputs, "learner.critic_inputs")?;
+        let encoder_in = match &cfg.encoder {
+            Some(e) => Some(select(
+                std::slice::from_ref(&e.input),
+                "learner.encoder.input",
+            )?),
+            None => None,
+        };
+        let adaptation_in = match &cfg.adaptation {
+            Some(a) => Some(select(
+                std::slice::from_ref(&a.input),
+                "learner.adaptation.input",
+            )?),
+            None => None,
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let actor = GaussianActor::new(
-            obs_dim,
+        let latent_dim = cfg.encoder.as_ref().map_or(0, |e| e.latent_dim);
+        let mut actor = GaussianActor::with_inputs(
+            actor_in,
+            latent_dim,
             act_dim,
             &cfg.actor_hidden,
             cfg.init_noise_std,
             &mut rng,
         );
         let critic = match cfg.critic {
-            CriticKind::Iqn => Critic::Iqn(IqnCritic::new(
-                obs_dim,
+            CriticKind::Iqn => Critic::Iqn(IqnCritic::with_input(
+                critic_in,
                 &cfg.critic_hidden,
                 cfg.num_cos,
                 &mut rng,
             )),
-            CriticKind::Scalar => {
-                Critic::Scalar(ScalarCritic::new(obs_dim, &cfg.critic_hidden, &mut rng))
-            }
+            CriticKind::Scalar => Critic::Scalar(ScalarCritic::with_input(
+                critic_in,
+                &cfg.critic_hidden,
+                &mut rng,
+            )),
         };
+        // after the critic, so that configs without them keep their initial weights
+        if let (Some(e), Some(input)) = (&cfg.encoder, encoder_in) {
+            actor.add_encoder(input, &e.hidden, &mut rng);
+        }
+        if let (Some(a), Some(input)) = (&cfg.adaptation, adaptation_in) {
+            actor.add_adaptation(input, &a.hidden, &mut rng);
+        }
         let opt = Optimizer {
             actor: AdamState::new(actor.params.len()),
             critic: AdamState::new(critic.params().len()),
             step: 0,
             lr: cfg.ppo.learning_rate,
         };
+        let adapt_opt = adaptation_offset(&actor).map(|off| AdaptationOptimizer {
+            adam: AdamState::new(actor.params.len() - off),
+            step: 0,
+        });
         let ac = ActorCritic::new(actor, critic, cfg.distortion(), cfg.num_value_taus);
         Ok(Learner {
             cfg: cfg.clone(),
@@ -209,6 +353,7 @@ impl Learner {
             opt,
             rng,
             ws: Workspace::default(),
+            adapt_opt,
         })
     }
 
@@ -249,6 +394,29 @@ impl Learner {
     /// `Z_0.75(s) - Z_0.25(s)`, `n` (0 for the scalar critic).
     pub fn iqr(&self, obs: &[f32]) -> Vec<f32> {
         self.ac.iqr(obs)
+    }
+
+    /// Where the actor's latent comes from (RMA: encoder for the teacher,
+    /// adaptation module for the student).
+    pub fn latent_source(&self) -> LatentSource {
+        self.ac.actor.latent_source()
+    }
+    pub fn set_latent_source(&mut self, source: LatentSource) {
+        self.ac.actor.set_latent_source(source);
+    }
+
+    /// RMA phase 2: regresses the adaptation module's z on the encoder's over
+    /// `obs` (`rows x obs_dim`); returns the mean mini-batch MSE.
+    pub fn regress_latent(&mut self, obs: &[f32], rows: usize) -> Result<f32> {
+        let (Some(cfg), Some(opt)) = (&self.cfg.adaptation, &mut self.adapt_opt) else {
+            bail!("this learner has no adaptation module (learner.adaptation)");
+        };
+        adaptation::regress(&mut self.ac.actor, opt, cfg, obs, rows, &mut self.rng)
+    }
+
+    /// Mean squared error of the adaptation module's z against the encoder's.
+    pub fn latent_mse(&self, obs: &[f32], rows: usize) -> Result<f32> {
+        adaptation::latent_mse(&self.ac.actor, obs, rows)
     }
 
     /// One PPO update (epochs x mini-batches) on a full rollout.
@@ -300,6 +468,20 @@ impl Learner {
             shape: vec![1],
             data: vec![self.opt.lr],
         });
+        if let Some(a) = &self.adapt_opt {
+            for (name, data) in [("adapt_adam.m", &a.adam.m), ("adapt_adam.v", &a.adam.v)] {
+                out.push(NamedTensor {
+                    name: name.into(),
+                    shape: vec![data.len()],
+                    data: data.clone(),
+                });
+            }
+            out.push(NamedTensor {
+                name: "adapt_adam.step".into(),
+                shape: vec![1],
+                data: vec![a.step as f32],
+            });
+        }
         out
     }
 
@@ -329,7 +511,9 @@ impl Learner {
             picked.push(t);
         }
         let mut it = picked.into_iter();
-        let Learner { ac, opt, .. } = self;
+        let Learner {
+            ac, opt, adapt_opt, ..
+        } = self;
         let groups: [(&mut ParamSet, &mut AdamState); 2] = [
             (&mut ac.actor.params, &mut opt.actor),
             (ac.critic.params_mut(), &mut opt.critic),
@@ -349,6 +533,15 @@ impl Learner {
         }
         opt.step = it.next().expect("adam.step").data[0] as u64;
         opt.lr = it.next().expect("lr").data[0];
+        if let Some(a) = adapt_opt {
+            a.adam
+                .m
+                .copy_from_slice(&it.next().expect("adapt_adam.m").data);
+            a.adam
+                .v
+                .copy_from_slice(&it.next().expect("adapt_adam.v").data);
+            a.step = it.next().expect("adapt_adam.step").data[0] as u64;
+        }
         Ok(())
     }
 }

@@ -40,7 +40,9 @@
 
 pub mod actor_critic;
 pub mod adam;
+pub mod adaptation;
 pub mod checkpoint;
+pub mod layout;
 pub mod learner;
 pub mod mat;
 pub mod nets;
@@ -50,7 +52,11 @@ pub mod storage;
 
 pub use actor_critic::{ActorCritic, Critic};
 pub use checkpoint::{load_checkpoint, save_checkpoint};
-pub use learner::{CriticKind, Learner, LearnerConfig, NamedTensor};
+pub use layout::{gather_columns, ObsLayout};
+pub use learner::{
+    AdaptationConfig, CriticKind, EncoderConfig, Learner, LearnerConfig, NamedTensor,
+};
+pub use nets::LatentSource;
 pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats, UpdateTimes};
 pub use risk::{Distortion, IQR_TAUS};
 pub use storage::{ActOutput, Rollout};

@@ -9,8 +9,10 @@
 //! row-major; a batch of `b` inputs is a `b x dim` slice. Linear weights are
 //! stored `in x out` so that `y = x W + b`.
 
+use super::layout::gather_columns;
 use super::mat::{add_col_sums, elu_backward_inplace, elu_inplace, fill_rows, gemm, relu_inplace};
 use rand::Rng;
+use std::ops::Range;
 
 /// One named tensor inside a [`ParamSet`].
 #[derive(Clone, Debug, PartialEq)]
@@ -139,6 +141,11 @@ pub struct Mlp {
 pub struct MlpCache {
     acts: Vec<Vec<f32>>,
     scratch: Vec<f32>,
+    /// The network's input when it reads a subset of the observation row.
+    input: Vec<f32>,
+    /// Latent module (encoder or adaptation): its input and its own cache.
+    latent_input: Vec<f32>,
+    latent: Vec<MlpCache>,
 }
 
 impl MlpCache {
@@ -203,7 +210,7 @@ impl Mlp {
         dout: &mut Vec<f32>,
         want_dx: bool,
     ) {
-        let MlpCache { acts, scratch } = cache;
+        let MlpCache { acts, scratch, .. } = cache;
         for (l, layer) in self.layers.iter().enumerate().rev() {
             if self.activated(l) {
                 elu_backward_inplace(dout, &acts[l]);
@@ -218,14 +225,70 @@ impl Mlp {
     }
 }
 
+/// Which columns of the observation row a network reads (concatenated in order).
+#[derive(Clone, Debug, PartialEq)]
+pub struct InputSel {
+    pub ranges: Vec<Range<usize>>,
+    pub row_width: usize,
+}
+
+impl InputSel {
+    /// The whole row.
+    pub fn all(width: usize) -> InputSel {
+        InputSel {
+            ranges: vec![0..width],
+            row_width: width,
+        }
+    }
+    pub fn width(&self) -> usize {
+        self.ranges.iter().map(|r| r.len()).sum()
+    }
+    fn is_identity(&self) -> bool {
+        self.ranges.len() == 1 && self.ranges[0] == (0..self.row_width)
+    }
+    /// The selected columns of `obs`: `obs` itself, or a copy gathered into `buf`.
+    fn select<'a>(&self, obs: &'a [f32], buf: &'a mut Vec<f32>) -> &'a [f32] {
+        if self.is_identity() {
+            obs
+        } else {
+            gather_columns(obs, self.row_width, &self.ranges, buf);
+            buf
+        }
+    }
+}
+
+/// Where the actor's latent `z` comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LatentSource {
+    /// `z = encoder(privileged)`: RMA's teacher (trained with the policy by PPO).
+    Encoder,
+    /// `z = adaptation(history)`: RMA's student (trained by regression on z).
+    Adaptation,
+}
+
+/// A latent input of the actor: an MLP over some columns, appended to the
+/// actor's direct inputs.
+#[derive(Clone, Debug)]
+pub struct LatentModule {
+    pub mlp: Mlp,
+    pub input: InputSel,
+}
+
 /// Gaussian policy: `mean = MLP(obs)`, `std = exp(log_std)` (state independent).
 #[derive(Clone, Debug)]
 pub struct GaussianActor {
     pub params: ParamSet,
     mlp: Mlp,
     log_std: usize,
+    /// Width of the observation row (all groups).
     pub obs_dim: usize,
     pub act_dim: usize,
+    /// Columns read directly; a latent, when present, is appended after them.
+    input: InputSel,
+    encoder: Option<LatentModule>,
+    adaptation: Option<LatentModule>,
+    latent_source: LatentSource,
+    latent_dim: usize,
 }
 
 impl GaussianActor {
@@ -237,17 +300,91 @@ impl GaussianActor {
         init_std: f32,
         rng: &mut impl Rng,
     ) -> Self {
+        GaussianActor::with_inputs(InputSel::all(obs_dim), 0, act_dim, hidden, init_std, rng)
+    }
+
+    /// An actor reading `input` columns plus a `latent_dim` latent (added with
+    /// [`GaussianActor::add_encoder`]; 0 for none).
+    pub fn with_inputs(
+        input: InputSel,
+        latent_dim: usize,
+        act_dim: usize,
+        hidden: &[usize],
+        init_std: f32,
+        rng: &mut impl Rng,
+    ) -> Self {
         let mut params = ParamSet::default();
-        let dims: Vec<usize> = [&[obs_dim][..], hidden, &[act_dim]].concat();
+        let dims: Vec<usize> = [&[input.width() + latent_dim][..], hidden, &[act_dim]].concat();
         let mlp = Mlp::build(&mut params, "", &dims, false, rng);
         let log_std = params.add("log_std", &[act_dim], || init_std.ln());
         GaussianActor {
             params,
             mlp,
             log_std,
-            obs_dim,
+            obs_dim: input.row_width,
             act_dim,
+            input,
+            encoder: None,
+            adaptation: None,
+            latent_source: LatentSource::Encoder,
+            latent_dim,
         }
+    }
+
+    /// Adds RMA's encoder `z = MLP(input)` (`hidden`, ELU, linear output of
+    /// `latent_dim` values; parameters `enc.*`), feeding the actor.
+    pub fn add_encoder(&mut self, input: InputSel, hidden: &[usize], rng: &mut impl Rng) {
+        let dims: Vec<usize> = [&[input.width()][..], hidden, &[self.latent_dim]].concat();
+        let mlp = Mlp::build(&mut self.params, "enc.", &dims, false, rng);
+        self.encoder = Some(LatentModule { mlp, input });
+    }
+
+    /// Adds RMA's adaptation module `z_hat = MLP(input)` (parameters `adapt.*`).
+    pub fn add_adaptation(&mut self, input: InputSel, hidden: &[usize], rng: &mut impl Rng) {
+        let dims: Vec<usize> = [&[input.width()][..], hidden, &[self.latent_dim]].concat();
+        let mlp = Mlp::build(&mut self.params, "adapt.", &dims, false, rng);
+        self.adaptation = Some(LatentModule { mlp, input });
+    }
+
+    pub fn latent_dim(&self) -> usize {
+        self.latent_dim
+    }
+    pub fn latent_source(&self) -> LatentSource {
+        self.latent_source
+    }
+    /// Which module feeds `z` from now on (the student uses the adaptation module).
+    pub fn set_latent_source(&mut self, source: LatentSource) {
+        self.latent_source = source;
+    }
+    pub fn encoder(&self) -> Option<&LatentModule> {
+        self.encoder.as_ref()
+    }
+    pub fn adaptation(&self) -> Option<&LatentModule> {
+        self.adaptation.as_ref()
+    }
+    /// Columns the actor reads directly.
+    pub fn direct_input(&self) -> &InputSel {
+        &self.input
+    }
+    /// The base policy MLP (input: direct columns then z).
+    pub fn base_mlp(&self) -> &Mlp {
+        &self.mlp
+    }
+
+    fn latent_module(&self) -> Option<&LatentModule> {
+        match self.latent_source {
+            LatentSource::Encoder => self.encoder.as_ref(),
+            LatentSource::Adaptation => self.adaptation.as_ref(),
+        }
+    }
+
+    /// `z` of `module` for `batch` rows of `obs` (`batch x latent_dim`).
+    pub fn latent_of(&self, module: &LatentModule, obs: &[f32], batch: usize) -> Vec<f32> {
+        let mut cache = MlpCache::default();
+        let mut buf = Vec::new();
+        let x = module.input.select(obs, &mut buf);
+        module.mlp.forward(&self.params.data, x, batch, &mut cache);
+        cache.acts.pop().unwrap_or_default()
     }
 
     /// Log standard deviation per action dimension (`act_dim`).
@@ -262,7 +399,42 @@ impl GaussianActor {
 
     /// Action means for `batch` observations, kept in `cache` (`batch x act_dim`).
     pub fn forward(&self, obs: &[f32], batch: usize, cache: &mut MlpCache) {
-        self.mlp.forward(&self.params.data, obs, batch, cache);
+        let p = &self.params.data;
+        let mut input = std::mem::take(&mut cache.input);
+        match self.latent_module() {
+            None if self.latent_dim == 0 => {
+                let x = self.input.select(obs, &mut input);
+                self.mlp.forward(p, x, batch, cache);
+            }
+            module => {
+                let mut zin = std::mem::take(&mut cache.latent_input);
+                cache.latent.resize_with(1, MlpCache::default);
+                let z: &[f32] = match module {
+                    Some(m) => {
+                        gather_columns(obs, m.input.row_width, &m.input.ranges, &mut zin);
+                        m.mlp.forward(p, &zin, batch, &mut cache.latent[0]);
+                        cache.latent[0].output()
+                    }
+                    None => &[],
+                };
+                // x = [direct columns | z] per row (z = 0 without a module)
+                let (dw, lw) = (self.input.width(), self.latent_dim);
+                input.clear();
+                input.reserve(batch * (dw + lw));
+                for (b, row) in obs.chunks_exact(self.obs_dim).enumerate() {
+                    for r in &self.input.ranges {
+                        input.extend_from_slice(&row[r.clone()]);
+                    }
+                    match z.get(b * lw..(b + 1) * lw) {
+                        Some(zr) => input.extend_from_slice(zr),
+                        None => input.extend(std::iter::repeat_n(0.0, lw)),
+                    }
+                }
+                self.mlp.forward(p, &input, batch, cache);
+                cache.latent_input = zin;
+            }
+        }
+        cache.input = input;
     }
 
     /// Inference: action means (`batch x act_dim`).
@@ -283,8 +455,30 @@ impl GaussianActor {
         cache: &mut MlpCache,
         d_mean: &mut Vec<f32>,
     ) {
+        let p = &self.params.data;
+        let input = std::mem::take(&mut cache.input);
+        let x = if self.latent_dim == 0 && self.input.is_identity() {
+            obs
+        } else {
+            &input
+        };
+        // the encoder learns with the policy (RMA phase 1); the adaptation
+        // module learns only by regression (phase 2), never here
+        let train_encoder = self.latent_source == LatentSource::Encoder && self.encoder.is_some();
         self.mlp
-            .backward(&self.params.data, grads, obs, batch, cache, d_mean, false);
+            .backward(p, grads, x, batch, cache, d_mean, train_encoder);
+        if let (true, Some(enc)) = (train_encoder, &self.encoder) {
+            let (dw, lw) = (self.input.width(), self.latent_dim);
+            let mut dz = Vec::with_capacity(batch * lw);
+            for row in d_mean.chunks_exact(dw + lw) {
+                dz.extend_from_slice(&row[dw..]);
+            }
+            let zin = std::mem::take(&mut cache.latent_input);
+            enc.mlp
+                .backward(p, grads, &zin, batch, &mut cache.latent[0], &mut dz, false);
+            cache.latent_input = zin;
+        }
+        cache.input = input;
     }
 }
 
@@ -293,19 +487,28 @@ impl GaussianActor {
 pub struct ScalarCritic {
     pub params: ParamSet,
     mlp: Mlp,
+    input: InputSel,
 }
 
 impl ScalarCritic {
     pub fn new(obs_dim: usize, hidden: &[usize], rng: &mut impl Rng) -> Self {
+        ScalarCritic::with_input(InputSel::all(obs_dim), hidden, rng)
+    }
+
+    /// A critic reading the `input` columns of the observation row.
+    pub fn with_input(input: InputSel, hidden: &[usize], rng: &mut impl Rng) -> Self {
         let mut params = ParamSet::default();
-        let dims: Vec<usize> = [&[obs_dim][..], hidden, &[1]].concat();
+        let dims: Vec<usize> = [&[input.width()][..], hidden, &[1]].concat();
         let mlp = Mlp::build(&mut params, "", &dims, false, rng);
-        ScalarCritic { params, mlp }
+        ScalarCritic { params, mlp, input }
     }
 
     /// Values (`batch`), kept in `cache`.
     pub fn forward(&self, obs: &[f32], batch: usize, cache: &mut MlpCache) {
-        self.mlp.forward(&self.params.data, obs, batch, cache);
+        let mut input = std::mem::take(&mut cache.input);
+        let x = self.input.select(obs, &mut input);
+        self.mlp.forward(&self.params.data, x, batch, cache);
+        cache.input = input;
     }
 
     /// Inference: `V(s)` for `batch` observations.
@@ -324,8 +527,15 @@ impl ScalarCritic {
         cache: &mut MlpCache,
         dv: &mut Vec<f32>,
     ) {
+        let input = std::mem::take(&mut cache.input);
+        let x = if self.input.is_identity() {
+            obs
+        } else {
+            &input
+        };
         self.mlp
-            .backward(&self.params.data, grads, obs, batch, cache, dv, false);
+            .backward(&self.params.data, grads, x, batch, cache, dv, false);
+        cache.input = input;
     }
 }
 
@@ -337,6 +547,7 @@ impl ScalarCritic {
 #[derive(Clone, Debug)]
 pub struct IqnCritic {
     pub params: ParamSet,
+    input: InputSel,
     trunk: Mlp,
     embed: Linear,
     head_w: usize,
@@ -372,6 +583,17 @@ impl IqnCache {
 impl IqnCritic {
     /// `hidden`: trunk sizes (e.g. `[512, 256, 128]`); `num_cos`: cosine basis size (64).
     pub fn new(obs_dim: usize, hidden: &[usize], num_cos: usize, rng: &mut impl Rng) -> Self {
+        IqnCritic::with_input(InputSel::all(obs_dim), hidden, num_cos, rng)
+    }
+
+    /// A critic reading the `input` columns of the observation row.
+    pub fn with_input(
+        input: InputSel,
+        hidden: &[usize],
+        num_cos: usize,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let obs_dim = input.width();
         assert!(
             !hidden.is_empty(),
             "IQN critic needs at least one hidden layer"
@@ -384,6 +606,7 @@ impl IqnCritic {
         let head = params.add_linear("head", feat, 1, rng);
         IqnCritic {
             params,
+            input,
             trunk,
             embed,
             head_w: head.w,
@@ -404,7 +627,10 @@ impl IqnCritic {
     ) -> &'c [f32] {
         let p = &self.params.data;
         let (n, f) = (taus.len(), self.feat);
-        self.trunk.forward(p, obs, batch, &mut cache.trunk);
+        let mut input = std::mem::take(&mut cache.trunk.input);
+        let x = self.input.select(obs, &mut input);
+        self.trunk.forward(p, x, batch, &mut cache.trunk);
+        cache.trunk.input = input;
         cache.cos.clear();
         for &t in taus {
             cache
@@ -474,8 +700,15 @@ impl IqnCritic {
             }
         }
         self.embed.backward_params(grads, &cache.cos, n, dg);
+        let input = std::mem::take(&mut cache.trunk.input);
+        let x = if self.input.is_identity() {
+            obs
+        } else {
+            &input
+        };
         self.trunk
-            .backward(p, grads, obs, batch, &mut cache.trunk, dphi, false);
+            .backward(p, grads, x, batch, &mut cache.trunk, dphi, false);
+        cache.trunk.input = input;
     }
 }
 

@@ -49,6 +49,8 @@ pub struct Robot {
     pub control: ControlConfig,
     /// Default joint angles (rad) from the control keyframe, SDK order.
     pub default_q_rad: [f64; NUM_JOINTS],
+    /// Per-motor torque multiplier (domain randomisation; 1 = nominal), SDK order.
+    pub motor_strength: [f64; NUM_JOINTS],
 }
 
 impl Robot {
@@ -86,6 +88,7 @@ impl Robot {
             layout,
             control,
             default_q_rad,
+            motor_strength: [1.0; NUM_JOINTS],
         };
         robot.reset_to_default()?;
         Ok(robot)
@@ -167,20 +170,20 @@ impl Robot {
     /// One physics step under PD towards `target_rad`; returns the applied torques (N m).
     #[inline]
     pub fn pd_substep(&mut self, target_rad: &[f64; NUM_JOINTS]) -> Result<[f64; NUM_JOINTS]> {
-        let (layout, control) = (&self.layout, &self.control);
+        let (layout, control, strength) = (&self.layout, &self.control, &self.motor_strength);
         run(
             &mut self.model,
             self.token,
             &self.params,
             &mut self.data,
-            |m, d| pd_step(m, d, layout, control, target_rad),
+            |m, d| pd_step(m, d, layout, control, strength, target_rad),
         )
     }
 
     /// One policy step: `decimation` PD physics steps towards the action's targets.
     pub fn policy_step(&mut self, action: &[f32]) -> Result<[f64; NUM_JOINTS]> {
         let target = self.control.joint_targets(&self.default_q_rad, action);
-        let (layout, control) = (&self.layout, &self.control);
+        let (layout, control, strength) = (&self.layout, &self.control, &self.motor_strength);
         run(
             &mut self.model,
             self.token,
@@ -189,7 +192,7 @@ impl Robot {
             |m, d| {
                 let mut tau = [0.0; NUM_JOINTS];
                 for _ in 0..control.decimation {
-                    tau = pd_step(m, d, layout, control, &target)?;
+                    tau = pd_step(m, d, layout, control, strength, &target)?;
                 }
                 Ok(tau)
             },
@@ -247,11 +250,12 @@ fn pd_step(
     d: &mut Data,
     layout: &RobotLayout,
     control: &ControlConfig,
+    strength: &[f64; NUM_JOINTS],
     target_rad: &[f64; NUM_JOINTS],
 ) -> Result<[f64; NUM_JOINTS]> {
     let q = layout.joint_pos(d.qpos());
     let qd = layout.joint_vel(d.qvel());
-    let tau = control.pd_torques(target_rad, &q, &qd);
+    let tau = control.pd_torques_scaled(target_rad, &q, &qd, strength);
     let ctrl = d.ctrl_mut();
     for (i, &t) in tau.iter().enumerate() {
         ctrl[layout.actuator_ids[i]] = t;

@@ -11,6 +11,7 @@ pub struct RobotParams {
     geom_friction: Vec<[f64; 3]>,
     body_mass_kg: Vec<f64>,
     body_subtree_mass_kg: Vec<f64>,
+    body_ipos_m: Vec<[f64; 3]>,
 }
 
 impl RobotParams {
@@ -21,6 +22,7 @@ impl RobotParams {
             geom_friction: model.geom_friction().to_vec(),
             body_mass_kg: model.body_mass_kg().to_vec(),
             body_subtree_mass_kg: model.body_subtree_mass_kg().to_vec(),
+            body_ipos_m: model.body_ipos_m().to_vec(),
         }
     }
 
@@ -30,6 +32,7 @@ impl RobotParams {
         copy(model.geom_friction_mut(), &self.geom_friction);
         copy(model.body_mass_kg_mut(), &self.body_mass_kg);
         copy(model.body_subtree_mass_kg_mut(), &self.body_subtree_mass_kg);
+        copy(model.body_ipos_m_mut(), &self.body_ipos_m);
     }
 
     pub fn timestep_s(&self) -> f64 {
@@ -51,6 +54,13 @@ impl RobotParams {
     }
     pub fn body_mass_kg_mut(&mut self) -> &mut [f64] {
         &mut self.body_mass_kg
+    }
+    /// Centre of mass of each body in its body frame (m).
+    pub fn body_ipos_m(&self) -> &[[f64; 3]] {
+        &self.body_ipos_m
+    }
+    pub fn body_ipos_m_mut(&mut self) -> &mut [[f64; 3]] {
+        &mut self.body_ipos_m
     }
     /// Subtree masses (kg); keep them the sums of the body masses below.
     pub fn body_subtree_mass_kg(&self) -> &[f64] {

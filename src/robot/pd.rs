@@ -107,9 +107,23 @@ impl ControlConfig {
         q_rad: &[f64; NUM_JOINTS],
         qd_rad_s: &[f64; NUM_JOINTS],
     ) -> [f64; NUM_JOINTS] {
+        self.pd_torques_scaled(target_rad, q_rad, qd_rad_s, &[1.0; NUM_JOINTS])
+    }
+
+    /// [`Self::pd_torques`] of motors whose torque is `strength` times nominal
+    /// (RMA's motor-strength randomisation), clipped at the same limits.
+    #[inline]
+    pub fn pd_torques_scaled(
+        &self,
+        target_rad: &[f64; NUM_JOINTS],
+        q_rad: &[f64; NUM_JOINTS],
+        qd_rad_s: &[f64; NUM_JOINTS],
+        strength: &[f64; NUM_JOINTS],
+    ) -> [f64; NUM_JOINTS] {
         std::array::from_fn(|i| {
-            let tau = self.kp_nm_per_rad * (target_rad[i] - q_rad[i])
-                - self.kd_nm_s_per_rad * qd_rad_s[i];
+            let tau = strength[i]
+                * (self.kp_nm_per_rad * (target_rad[i] - q_rad[i])
+                    - self.kd_nm_s_per_rad * qd_rad_s[i]);
             let limit = self.torque_limit_nm(i);
             tau.clamp(-limit, limit)
         })

@@ -151,13 +151,18 @@ impl MetricsCsv {
     /// or a kill, and rows of another column layout are dropped, atomically
     /// (temp file + rename), then the file is opened for appending.
     pub fn open_resumed(path: &Path, iteration: usize) -> Result<MetricsCsv> {
+        Self::open_resumed_with(path, iteration, &header())
+    }
+
+    /// [`MetricsCsv::open_resumed`] of a file with columns `head` (its first column
+    /// the iteration).
+    pub fn open_resumed_with(path: &Path, iteration: usize, head: &str) -> Result<MetricsCsv> {
         if path.exists() {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("reading {}", path.display()))?;
-            let head = header();
             let width = head.split(',').count();
             let mut kept = String::with_capacity(text.len());
-            kept.push_str(&head);
+            kept.push_str(head);
             kept.push('\n');
             // only complete lines (a cut last line has no newline)
             let complete = text.rsplit_once('\n').map_or("", |(c, _)| c);
@@ -180,11 +185,15 @@ impl MetricsCsv {
                 return Err(e).with_context(|| format!("rewriting {}", path.display()));
             }
         }
-        Self::open(path)
+        Self::open_with(path, head)
     }
 
     /// Opens `path` for appending (a resumed run keeps its history), writing the header if new.
     pub fn open(path: &Path) -> Result<MetricsCsv> {
+        Self::open_with(path, &header())
+    }
+
+    fn open_with(path: &Path, head: &str) -> Result<MetricsCsv> {
         let is_new = !path.exists()
             || std::fs::metadata(path)
                 .map(|m| m.len() == 0)
@@ -196,9 +205,16 @@ impl MetricsCsv {
             .with_context(|| format!("opening {}", path.display()))?;
         let mut out = BufWriter::new(f);
         if is_new {
-            writeln!(out, "{}", header())?;
+            writeln!(out, "{head}")?;
         }
         Ok(MetricsCsv { out })
+    }
+
+    /// Appends one already formatted row.
+    pub fn write_line(&mut self, row: &str) -> Result<()> {
+        writeln!(self.out, "{row}").context("writing metrics")?;
+        self.out.flush().context("writing metrics")?;
+        Ok(())
     }
 
     pub fn write(&mut self, r: &IterationRow) -> Result<()> {

@@ -1,5 +1,6 @@
 //! The runner: the training loop, metrics and checkpoint files.
 
+mod adapt;
 pub mod metrics;
 pub mod policy_file;
 pub mod train;

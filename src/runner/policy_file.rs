@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 use crate::config::TrainConfig;
 use crate::env::observation::layout_string;
 use crate::env::{ACT_DIM, OBS_DIM};
-use crate::learn::{load_checkpoint, save_checkpoint, Learner};
+use crate::learn::{load_checkpoint, save_checkpoint, LatentSource, Learner, ObsLayout};
 
 /// Bumped when the file layout changes incompatibly.
 pub const FORMAT_VERSION: &str = "1";
@@ -43,6 +43,19 @@ pub fn save_policy(
     meta.insert("obs_layout".into(), layout_string());
     meta.insert("obs_dim".into(), OBS_DIM.to_string());
     meta.insert("act_dim".into(), ACT_DIM.to_string());
+    meta.insert("obs_groups".into(), cfg.env.obs_layout().to_meta());
+    let o = &cfg.env.observation;
+    for g in &o.groups {
+        meta.insert(
+            format!("obs_group.{}", g.name()),
+            g.fields_string(o.history_steps),
+        );
+    }
+    let source = match learner.latent_source() {
+        LatentSource::Encoder => "encoder",
+        LatentSource::Adaptation => "adaptation",
+    };
+    meta.insert("latent_source".into(), source.into());
     meta.insert("iteration".into(), progress.iteration.to_string());
     meta.insert(
         "total_env_steps".into(),
@@ -150,7 +163,30 @@ pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
             })
             .transpose()?,
     };
-    let mut learner = Learner::new(OBS_DIM, ACT_DIM, &config.learner, config.runner.seed)?;
+    // the row's groups: stored since groups exist, else the policy group alone
+    let stored_layout = match meta.get("obs_groups") {
+        Some(text) => ObsLayout::parse_meta(text)
+            .with_context(|| format!("{}: metadata `obs_groups`", path.display()))?,
+        None => ObsLayout::policy_only(OBS_DIM),
+    };
+    let layout = config.env.obs_layout();
+    stored_layout.check_same(&layout, &path.display().to_string())?;
+    let o = &config.env.observation;
+    for g in &o.groups {
+        let key = format!("obs_group.{}", g.name());
+        let here = g.fields_string(o.history_steps);
+        if let Some(stored) = meta.get(&key).filter(|s| **s != here) {
+            bail!(
+                "{}: observation group {:?} holds [{stored}] in the checkpoint but [{here}] in this build",
+                path.display(),
+                g.name()
+            );
+        }
+    }
+    let mut learner = Learner::with_layout(&layout, ACT_DIM, &config.learner, config.runner.seed)?;
+    if meta.get("latent_source").map(String::as_str) == Some("adaptation") {
+        learner.set_latent_source(LatentSource::Adaptation);
+    }
     learner.load_state(&tensors).with_context(|| {
         format!(
             "{} does not match the network in its own config",

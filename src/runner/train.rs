@@ -15,7 +15,7 @@ use super::metrics::{CollectTimes, EpisodeStats, IterationRow, MetricsCsv};
 use super::policy_file::{load_policy, save_policy, Progress};
 use crate::config::TrainConfig;
 use crate::env::risk::NUM_RISK_TERMS;
-use crate::env::{build_scene, EpisodeSummary, VecEnv, ACT_DIM, OBS_DIM};
+use crate::env::{build_scene, EpisodeSummary, VecEnv, ACT_DIM};
 use crate::learn::{Learner, Rollout, UpdateStats, UpdateTimes};
 
 /// Name of the rolling checkpoint in a run directory.
@@ -167,7 +167,12 @@ pub fn train(
             cfg.runner.seed,
             dir.root.display()
         );
-        let learner = Learner::new(OBS_DIM, ACT_DIM, &cfg.learner, cfg.runner.seed)?;
+        let learner = Learner::with_layout(
+            &cfg.env.obs_layout(),
+            ACT_DIM,
+            &cfg.learner,
+            cfg.runner.seed,
+        )?;
         let progress = Progress {
             rng_seed: cfg.runner.seed ^ 0xA11_0C47,
             ..Default::default()
@@ -199,7 +204,7 @@ pub fn train(
     }
     let mut rng = ChaCha8Rng::seed_from_u64(progress.rng_seed);
     rng.set_word_pos(progress.rng_word_pos);
-    let mut rollout = Rollout::new(r.steps_per_env, r.num_envs, OBS_DIM, ACT_DIM);
+    let mut rollout = Rollout::new(r.steps_per_env, r.num_envs, envs.obs_width(), ACT_DIM);
     // a resumed run continues from its checkpoint: later rows are dropped
     let mut metrics = MetricsCsv::open_resumed(&dir.metrics(), progress.iteration)?;
     let lin_weight_dt = cfg.env.reward.lin_vel_tracking * cfg.env.control.policy_dt_s();
@@ -325,6 +330,31 @@ pub fn train(
             last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
         }
     }
+    if !interrupted {
+        let (stopped, written) = super::adapt::adaptation_phase(
+            &dir,
+            &cfg,
+            &mut learner,
+            &mut progress,
+            &mut envs,
+            &mut obs,
+            &stop,
+            &bar,
+        )?;
+        if let Some(path) = written {
+            last_checkpoint = path;
+        }
+        if stopped {
+            bar.finish_and_clear();
+            return Ok(TrainSummary {
+                run_dir: dir.root.clone(),
+                iterations_done: progress.iteration,
+                interrupted: true,
+                last_checkpoint,
+                final_episode_stats: last_stats,
+            });
+        }
+    }
     if interrupted {
         last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
         log_line(
@@ -373,7 +403,7 @@ fn ensure_finite(
 }
 
 /// Writes the numbered checkpoint and the rolling `latest` one.
-fn save_both(
+pub(super) fn save_both(
     dir: &RunDir,
     learner: &Learner,
     cfg: &TrainConfig,
@@ -405,7 +435,7 @@ fn time_split(c: &CollectTimes, l: &UpdateTimes) -> String {
 }
 
 /// Prints above the bar on a terminal, plainly otherwise (logs of background runs).
-fn log_line(bar: &ProgressBar, line: String) {
+pub(super) fn log_line(bar: &ProgressBar, line: String) {
     if bar.is_hidden() {
         println!("{line}");
     } else {

@@ -257,6 +257,14 @@ impl Model {
         let n = self.nbody();
         self.reals_mut(self.m().body_mass, n)
     }
+    /// Centre of mass of each body in its body frame (m).
+    pub fn body_ipos_m(&self) -> &[[f64; 3]] {
+        self.vec3s(self.m().body_ipos, self.nbody())
+    }
+    pub fn body_ipos_m_mut(&mut self) -> &mut [[f64; 3]] {
+        let n = self.nbody();
+        self.vec3s_mut(self.m().body_ipos, n)
+    }
     /// Sets a body's mass (kg), keeping the subtree masses of it and its
     /// ancestors consistent (what `mj_setConst` would recompute). Inertia is kept.
     pub fn set_body_mass_kg(&mut self, body: usize, mass_kg: f64) {

@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use super::episode::{EpisodeLogger, HeightGrid};
 use super::value::{ValueProbe, DEFAULT_NUM_BARS};
 use crate::env::terrain::Terrain;
-use crate::env::{build_scene, Env, EnvConfig, EpisodeEnd, Scene, OBS_DIM};
+use crate::env::{build_scene, Env, EnvConfig, EpisodeEnd, Scene};
 use crate::eval::{build_named_scenario, ScenarioHook};
 use crate::learn::Learner;
 
@@ -153,8 +153,8 @@ pub fn run_episode(
     max_steps: Option<usize>,
     label: &str,
 ) -> Result<PlayedEpisode> {
-    let mut obs = vec![0.0f32; OBS_DIM];
-    let mut final_obs = vec![0.0f32; OBS_DIM];
+    let mut obs = vec![0.0f32; env.obs_width()];
+    let mut final_obs = vec![0.0f32; env.obs_width()];
     env.reset(&mut obs).context("resetting the env")?;
     if let Some(h) = hook.as_deref_mut() {
         h.on_reset(env);

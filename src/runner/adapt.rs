@@ -1,0 +1,148 @@
+//! RMA phase 2 in the training run: after the teacher's PPO iterations, the
+//! adaptation module learns to regress the teacher's latent from the history,
+//! on rollouts its own estimate drives through the frozen base policy (the
+//! student's deterministic actions). Logged to `adaptation.csv`; checkpoints
+//! as in phase 1, marked `latent_source = adaptation`.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::Result;
+use indicatif::ProgressBar;
+
+use super::metrics::{EpisodeStats, MetricsCsv};
+use super::train::{log_line, save_both, RunDir};
+use super::Progress;
+use crate::config::TrainConfig;
+use crate::env::VecEnv;
+use crate::learn::{LatentSource, Learner};
+
+/// Columns of `adaptation.csv`.
+pub const ADAPTATION_HEADER: &str = "iteration,wall_s,total_env_steps,collect_s,learn_s,latent_mse_before,latent_mse,episodes,mean_return,lin_tracking_score,fall_fraction,terrain_level";
+
+/// Runs phase 2 from `progress.iteration` up to `phase1_end + adaptation.iterations`.
+/// Returns whether it was interrupted, and the last checkpoint written (if any).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn adaptation_phase(
+    dir: &RunDir,
+    cfg: &TrainConfig,
+    learner: &mut Learner,
+    progress: &mut Progress,
+    envs: &mut VecEnv,
+    obs: &mut Vec<f32>,
+    stop: &AtomicBool,
+    bar: &ProgressBar,
+) -> Result<(bool, Option<PathBuf>)> {
+    let Some(a) = cfg.learner.adaptation.clone() else {
+        return Ok((false, None));
+    };
+    let r = &cfg.runner;
+    let end = r.iterations + a.iterations;
+    if progress.iteration >= end {
+        return Ok((false, None));
+    }
+    learner.set_latent_source(LatentSource::Adaptation);
+    log_line(
+        bar,
+        format!(
+            "RMA phase 2: adaptation module from iteration {} to {end} (teacher frozen)",
+            progress.iteration
+        ),
+    );
+    bar.set_length(end as u64);
+    let mut csv = MetricsCsv::open_resumed_with(
+        &dir.root.join("adaptation.csv"),
+        progress.iteration,
+        ADAPTATION_HEADER,
+    )?;
+    let width = envs.obs_width();
+    let rows = r.num_envs * r.steps_per_env;
+    let mut buffer = Vec::with_capacity(rows * width);
+    let lin_weight_dt = cfg.env.reward.lin_vel_tracking * cfg.env.control.policy_dt_s();
+    let wall_start = Instant::now() - std::time::Duration::from_secs_f64(progress.wall_s);
+    let mut last = None;
+    let mut episodes = Vec::new();
+    while progress.iteration < end {
+        if stop.load(Ordering::SeqCst) {
+            let path = save_both(dir, learner, cfg, progress)?;
+            log_line(
+                bar,
+                format!(
+                    "interrupted: checkpoint written at iteration {}",
+                    progress.iteration
+                ),
+            );
+            return Ok((true, Some(path)));
+        }
+        let t0 = Instant::now();
+        buffer.clear();
+        for _ in 0..r.steps_per_env {
+            buffer.extend_from_slice(obs);
+            let actions = learner.act_mean(obs);
+            let b = envs.step(&actions);
+            obs.copy_from_slice(&b.obs);
+            episodes.extend(envs.drain_episodes());
+        }
+        let collect_s = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let before = learner.latent_mse(&buffer, rows)?;
+        let mse = learner.regress_latent(&buffer, rows)?;
+        let learn_s = t1.elapsed().as_secs_f64();
+        anyhow::ensure!(
+            mse.is_finite(),
+            "RMA phase 2 diverged at iteration {}: latent MSE {mse}",
+            progress.iteration + 1
+        );
+        progress.iteration += 1;
+        progress.total_env_steps += rows as u64;
+        progress.wall_s = wall_start.elapsed().as_secs_f64();
+        progress.terrain_levels = envs.terrain_levels();
+        let stats = EpisodeStats::from_episodes(&episodes, lin_weight_dt);
+        let falls = if stats.episodes > 0 {
+            stats.falls as f64 / stats.episodes as f64
+        } else {
+            0.0
+        };
+        csv.write_line(&format!(
+            "{},{:.3},{},{:.4},{:.4},{:.6},{:.6},{},{:.5},{:.5},{:.4},{:.3}",
+            progress.iteration,
+            progress.wall_s,
+            progress.total_env_steps,
+            collect_s,
+            learn_s,
+            before,
+            mse,
+            stats.episodes,
+            stats.mean_return,
+            stats.lin_tracking_score,
+            falls,
+            envs.mean_terrain_level()
+        ))?;
+        let status = format!(
+            "it {:>5} | phase 2 | {:>7.1} min | collect {:.2}s regress {:.2}s | latent mse {:.5} (before {:.5}) | return {:>7.3} | track {:.3} | falls {}/{}",
+            progress.iteration,
+            progress.wall_s / 60.0,
+            collect_s,
+            learn_s,
+            mse,
+            before,
+            stats.mean_return,
+            stats.lin_tracking_score,
+            stats.falls,
+            stats.episodes
+        );
+        if progress.iteration.is_multiple_of(r.log_interval) {
+            log_line(bar, status.clone());
+        }
+        bar.set_position(progress.iteration as u64);
+        bar.set_message(status);
+        if !episodes.is_empty() {
+            episodes.clear();
+        }
+        if progress.iteration % r.save_interval == 0 || progress.iteration == end {
+            last = Some(save_both(dir, learner, cfg, progress)?);
+        }
+    }
+    Ok((false, last))
+}
