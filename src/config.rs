@@ -86,6 +86,26 @@ impl TrainConfig {
             .validate()
             .map_err(|e| anyhow::anyhow!("invalid [env] value: {e}"))?;
         self.learner.validate().context("invalid [learner] value")?;
+        // every group a network reads must be one the env writes
+        let layout = self.env.obs_layout();
+        let l = &self.learner;
+        let reads = l
+            .actor_inputs
+            .iter()
+            .map(|g| (g, "learner.actor_inputs"))
+            .chain(l.critic_inputs.iter().map(|g| (g, "learner.critic_inputs")))
+            .chain(l.encoder.iter().map(|e| (&e.input, "learner.encoder.input")));
+        for (group, key) in reads {
+            layout.require(group, key).context("invalid [learner] value")?;
+        }
+        // the adaptation module's group may be absent: phase 2 adds it
+        if let Some(a) = &l.adaptation {
+            anyhow::ensure!(
+                layout.range(&a.input).is_some() || a.input == "history",
+                "invalid [learner] value: learner.adaptation.input = {:?} is not an observation group the env writes (phase 2 can add only \"history\")",
+                a.input
+            );
+        }
         let r = &self.runner;
         anyhow::ensure!(
             r.num_envs > 0,

@@ -70,7 +70,7 @@ const TOKENS: &[&str] = &[
 ];
 
 fn repo_configs() -> Vec<String> {
-    ["configs/flat.toml", "configs/rough.toml"]
+    ["configs/flat.toml", "configs/rall.toml", "configs/dr.toml", "configs/rma.toml"]
         .iter()
         .map(|p| std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(p)).unwrap())
         .collect()

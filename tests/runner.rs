@@ -143,10 +143,16 @@ fn mismatched_or_corrupt_checkpoints_are_refused_with_the_cause() {
 
 #[test]
 fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
-    for f in ["configs/flat.toml", "configs/rough.toml"] {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(f);
-        TrainConfig::from_toml_file(&p).unwrap_or_else(|e| panic!("{f}: {e:#}"));
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let p = entry.unwrap().path();
+        if p.extension().is_some_and(|e| e == "toml") {
+            TrainConfig::from_toml_file(&p).unwrap_or_else(|e| panic!("{}: {e:#}", p.display()));
+            n += 1;
+        }
     }
+    assert!(n >= 11, "expected every method in terrain and flat variants, found {n} configs");
     let err = |text: &str| format!("{:#}", TrainConfig::from_toml_str(text).unwrap_err());
     let e = err("[env.risk]\nprobability = -0.1\n");
     assert!(e.contains("risk.probability"), "{e}");

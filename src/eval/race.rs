@@ -17,7 +17,8 @@ use serde::Serialize;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{mean, quantile, NamedPolicy, ScenarioRun};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
-use crate::env::{EpisodeEnd, ACT_DIM};
+use crate::env::{EnvConfig, EpisodeEnd, ObsGroup, ACT_DIM};
+use crate::learn::relayout_rows;
 
 /// The meta controller's settings.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -319,6 +320,29 @@ enum Driver<'a> {
     },
 }
 
+/// The meta controller's env: the risky policy's, writing every observation
+/// group either policy reads (e.g. an RMA student's history).
+fn meta_env(risky: &NamedPolicy, safe: &NamedPolicy) -> Result<EnvConfig> {
+    let mut env = risky.env.clone();
+    let (ro, so) = (&risky.env.observation, &safe.env.observation);
+    for g in &so.groups {
+        if !ro.groups.contains(g) {
+            env.observation.groups.push(*g);
+        }
+    }
+    let both_history = ro.groups.contains(&ObsGroup::History) && so.groups.contains(&ObsGroup::History);
+    anyhow::ensure!(
+        !both_history || ro.history_steps == so.history_steps,
+        "the meta controller's policies keep {} and {} history steps: they cannot share one env",
+        ro.history_steps,
+        so.history_steps
+    );
+    if so.groups.contains(&ObsGroup::History) {
+        env.observation.history_steps = so.history_steps;
+    }
+    Ok(env)
+}
+
 fn race_spec() -> ScenarioSpec {
     ScenarioSpec::new(Load::None, GroundKind::RaceTrack, true)
 }
@@ -326,16 +350,12 @@ fn race_spec() -> ScenarioSpec {
 /// Runs `driver` until every agent has finished `opts.episodes` episodes;
 /// returns (return, fell, distance) of each agent's first `episodes` episodes.
 fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Option<MetaLog>)> {
-    let env_policy = match driver {
-        Driver::Single(p) => p,
-        Driver::Meta { risky, .. } => risky,
+    let env_cfg = match driver {
+        Driver::Single(p) => p.env.clone(),
+        Driver::Meta { risky, safe, .. } => meta_env(risky, safe)?,
     };
-    let setup = build_scenario(
-        &race_spec(),
-        &env_policy.env,
-        &opts.params,
-        opts.course_seed,
-    )?;
+    let env_layout = env_cfg.obs_layout();
+    let setup = build_scenario(&race_spec(), &env_cfg, &opts.params, opts.course_seed)?;
     let n = opts.agents;
     let mut run = ScenarioRun::new(&setup, n, opts.threads, opts.seed)?;
     let mut done: Vec<Vec<RaceEpisode>> = vec![Vec::new(); n];
@@ -355,16 +375,19 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
         let actions = match driver {
             Driver::Single(p) => p.learner.act_mean(run.obs()),
             Driver::Meta { risky, safe, .. } => {
-                let iqr = risky.learner.iqr(run.obs());
+                // each policy reads its own groups of the shared observation row
+                let risky_obs = relayout_rows(run.obs(), &env_layout, &risky.env.obs_layout())?;
+                let iqr = risky.learner.iqr(&risky_obs);
                 iqrs.extend(iqr.iter().map(|&x| x as f64));
                 let sw = switch.as_mut().expect("meta switch");
                 let use_safe = sw.update(&iqr).to_vec();
                 for (i, (&q, &safe)) in iqr.iter().zip(&use_safe).enumerate() {
                     by_x.add(run.env(i).robot().base_pos_m()[0], q as f64, safe);
                 }
-                let mut a = risky.learner.act_mean(run.obs());
+                let mut a = risky.learner.act_mean(&risky_obs);
                 if use_safe.iter().any(|&s| s) {
-                    let b = safe.learner.act_mean(run.obs());
+                    let safe_obs = relayout_rows(run.obs(), &env_layout, &safe.env.obs_layout())?;
+                    let b = safe.learner.act_mean(&safe_obs);
                     for (i, s) in use_safe.iter().enumerate() {
                         if *s {
                             a[i * ACT_DIM..(i + 1) * ACT_DIM]

@@ -106,6 +106,29 @@ impl ObsLayout {
     }
 }
 
+/// Rows of `x` laid out as `from`, re-laid out as `to` (each of `to`'s groups
+/// taken from `from` by name): how two policies with different groups read one
+/// env (the meta controller with an RMA student).
+pub fn relayout_rows(x: &[f32], from: &ObsLayout, to: &ObsLayout) -> Result<Vec<f32>> {
+    if from == to {
+        return Ok(x.to_vec());
+    }
+    let mut ranges = Vec::with_capacity(to.groups.len());
+    for (name, width) in &to.groups {
+        let r = from.require(name, "a policy")?;
+        if r.len() != *width {
+            bail!(
+                "observation group {name:?} is {} values wide in the env but {width} in the policy",
+                r.len()
+            );
+        }
+        ranges.push(r);
+    }
+    let mut out = Vec::new();
+    gather_columns(x, from.width(), &ranges, &mut out);
+    Ok(out)
+}
+
 /// Copies the columns `ranges` of each of `rows` rows of `x` (`rows x width`)
 /// into `out` (`rows x sum(ranges)`), in the order given.
 pub fn gather_columns(x: &[f32], width: usize, ranges: &[Range<usize>], out: &mut Vec<f32>) {
@@ -117,5 +140,43 @@ pub fn gather_columns(x: &[f32], width: usize, ranges: &[Range<usize>], out: &mu
         for r in ranges {
             out.extend_from_slice(&row[r.clone()]);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layout(text: &str) -> ObsLayout {
+        ObsLayout::parse_meta(text).unwrap()
+    }
+
+    #[test]
+    fn rows_are_relaid_out_by_group_name() {
+        let env = layout("policy:2,privileged:1,history:3");
+        let x: Vec<f32> = (0..12).map(|v| v as f32).collect(); // two rows
+        let student = layout("policy:2,history:3");
+        assert_eq!(
+            relayout_rows(&x, &env, &student).unwrap(),
+            vec![0.0, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0, 9.0, 10.0, 11.0]
+        );
+        assert_eq!(relayout_rows(&x, &env, &env).unwrap(), x);
+        let e = relayout_rows(&x, &layout("policy:2"), &student).unwrap_err();
+        assert!(format!("{e}").contains("\"history\""), "{e}");
+        let e = relayout_rows(&x, &env, &layout("policy:2,history:4")).unwrap_err();
+        assert!(format!("{e}").contains("history") && format!("{e}").contains("wide"), "{e}");
+    }
+
+    #[test]
+    fn layouts_compare_group_by_group() {
+        let a = layout("policy:48,privileged:31");
+        assert!(a.check_same(&a.clone(), "x").is_ok());
+        let e = a.check_same(&layout("policy:48,privileged:30"), "x").unwrap_err();
+        assert!(format!("{e}").contains("\"privileged\""), "{e}");
+        let e = a.check_same(&layout("policy:48"), "x").unwrap_err();
+        assert!(format!("{e}").contains("\"privileged\""), "{e}");
+        assert!(ObsLayout::parse_meta("policy").is_err());
+        assert_eq!(a.range("privileged"), Some(48..79));
+        assert_eq!(ObsLayout::parse_meta(&a.to_meta()).unwrap(), a);
     }
 }

@@ -299,12 +299,14 @@ impl Learner {
             )?),
             None => None,
         };
+        // the adaptation module exists once its input does (RMA: the history
+        // group is added to the observation for phase 2)
         let adaptation_in = match &cfg.adaptation {
-            Some(a) => Some(select(
+            Some(a) if layout.range(&a.input).is_some() => Some(select(
                 std::slice::from_ref(&a.input),
                 "learner.adaptation.input",
             )?),
-            None => None,
+            _ => None,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let latent_dim = cfg.encoder.as_ref().map_or(0, |e| e.latent_dim);
@@ -488,6 +490,29 @@ impl Learner {
     /// Restores [`Self::state`]. Refuses (changing nothing) a missing tensor or a
     /// shape mismatch, naming the tensor and both shapes. Extra tensors (e.g. the
     /// runner's own) are ignored.
+    /// [`Self::load_state`], keeping this learner's own values for the tensors
+    /// `tensors` lacks whose name `keep_own` accepts (e.g. a module added since
+    /// the checkpoint: RMA's adaptation module at the start of phase 2).
+    pub fn load_state_keeping(
+        &mut self,
+        tensors: &[NamedTensor],
+        keep_own: impl Fn(&str) -> bool,
+    ) -> Result<()> {
+        let mut merged = Vec::new();
+        for own in self.state() {
+            match tensors.iter().find(|t| t.name == own.name) {
+                Some(t) => merged.push(t.clone()),
+                None if keep_own(&own.name) => merged.push(own),
+                None => bail!(
+                    "checkpoint is missing tensor `{}` (expected shape {:?})",
+                    own.name,
+                    own.shape
+                ),
+            }
+        }
+        self.load_state(&merged)
+    }
+
     pub fn load_state(&mut self, tensors: &[NamedTensor]) -> Result<()> {
         let expected = self.state();
         let find = |name: &str| tensors.iter().find(|t| t.name == name);

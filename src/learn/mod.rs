@@ -52,7 +52,7 @@ pub mod storage;
 
 pub use actor_critic::{ActorCritic, Critic};
 pub use checkpoint::{load_checkpoint, save_checkpoint};
-pub use layout::{gather_columns, ObsLayout};
+pub use layout::{gather_columns, relayout_rows, ObsLayout};
 pub use learner::{
     AdaptationConfig, CriticKind, EncoderConfig, Learner, LearnerConfig, NamedTensor,
 };

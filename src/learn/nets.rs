@@ -775,6 +775,88 @@ mod tests {
     }
 
     #[test]
+    fn actor_with_encoder_backward_matches_finite_differences() {
+        // row [direct 3 | privileged 4]; z (2) = encoder(privileged) appended to the direct input
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let (b, a) = (5, 3);
+        let sel = |r: Range<usize>| InputSel {
+            ranges: vec![r],
+            row_width: 7,
+        };
+        let mut actor = GaussianActor::with_inputs(sel(0..3), 2, a, &[6, 5], 1.0, &mut rng);
+        actor.add_encoder(sel(3..7), &[4], &mut rng);
+        let obs = data(b * 7, 22);
+        let c = data(b * a, 23);
+        let mut cache = MlpCache::default();
+        actor.forward(&obs, b, &mut cache);
+        let mut g = vec![0.0; actor.params.len()];
+        actor.backward(&mut g, &obs, b, &mut cache, &mut c.clone());
+        let enc_params = actor
+            .params
+            .entries
+            .iter()
+            .filter(|e| e.name.starts_with("enc."))
+            .map(|e| e.offset..e.offset + e.len())
+            .collect::<Vec<_>>();
+        assert!(!enc_params.is_empty());
+        assert!(
+            enc_params.iter().any(|r| g[r.clone()].iter().any(|&v| v != 0.0)),
+            "the encoder must receive gradient"
+        );
+        let mut ps = actor.params.clone();
+        let loss = |ps: &ParamSet| {
+            let mut act = actor.clone();
+            act.params = ps.clone();
+            let m = act.mean(&obs, b);
+            m.iter()
+                .zip(&c)
+                .map(|(m, c)| (*m as f64) * (*c as f64))
+                .sum()
+        };
+        check_grads(&mut ps, &loss, &g, 120);
+    }
+
+    #[test]
+    fn critics_reading_some_groups_match_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(31);
+        let (b, w) = (4, 9);
+        let sel = InputSel {
+            ranges: vec![5..9, 0..2],
+            row_width: w,
+        };
+        let critic = ScalarCritic::with_input(sel.clone(), &[6, 4], &mut rng);
+        let obs = data(b * w, 32);
+        let c = data(b, 33);
+        let mut cache = MlpCache::default();
+        critic.forward(&obs, b, &mut cache);
+        let mut g = vec![0.0; critic.params.len()];
+        critic.backward(&mut g, &obs, b, &mut cache, &mut c.clone());
+        let mut ps = critic.params.clone();
+        let loss = |ps: &ParamSet| {
+            let mut cr = critic.clone();
+            cr.params = ps.clone();
+            let v = cr.values(&obs, b);
+            v.iter()
+                .zip(&c)
+                .map(|(m, c)| (*m as f64) * (*c as f64))
+                .sum()
+        };
+        check_grads(&mut ps, &loss, &g, 60);
+        // the columns it does not read do not change its output
+        let mut other = obs.clone();
+        for row in other.chunks_exact_mut(w) {
+            row[2..5].iter_mut().for_each(|v| *v += 1.0);
+        }
+        assert_eq!(critic.values(&obs, b), critic.values(&other, b));
+        let iqn = IqnCritic::with_input(sel, &[6, 4], 8, &mut rng);
+        let taus = [0.1, 0.5, 0.9];
+        assert_eq!(
+            iqn.quantiles(&obs, b, &taus),
+            iqn.quantiles(&other, b, &taus)
+        );
+    }
+
+    #[test]
     fn iqn_backward_matches_finite_differences() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let (b, o) = (6, 3);

@@ -8,40 +8,99 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use anyhow::Result;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 
 use super::metrics::{EpisodeStats, MetricsCsv};
 use super::train::{log_line, save_both, RunDir};
 use super::Progress;
 use crate::config::TrainConfig;
-use crate::env::VecEnv;
+use crate::env::{ObsGroup, Scene, VecEnv, ACT_DIM};
 use crate::learn::{LatentSource, Learner};
 
 /// Columns of `adaptation.csv`.
 pub const ADAPTATION_HEADER: &str = "iteration,wall_s,total_env_steps,collect_s,learn_s,latent_mse_before,latent_mse,episodes,mean_return,lin_tracking_score,fall_fraction,terrain_level";
+
+/// What phase 2 needs to rebuild the envs with a wider observation.
+pub(super) struct PhaseWorld<'a> {
+    pub scene: &'a Scene,
+    pub threads: usize,
+    pub env_seed: u64,
+}
+
+/// Phase 1 runs without the history (no network reads it, and 50 steps of it
+/// would multiply the rollout's width by 30); phase 2 adds it to the
+/// observation: the envs are rebuilt on the same terrain and curriculum levels,
+/// and the learner gains its adaptation module, everything else carried over.
+fn add_history(
+    dir: &RunDir,
+    cfg: &mut TrainConfig,
+    learner: &mut Learner,
+    progress: &Progress,
+    envs: &mut VecEnv,
+    obs: &mut Vec<f32>,
+    world: &PhaseWorld,
+) -> Result<()> {
+    let mut next = cfg.clone();
+    next.env.observation.groups.push(ObsGroup::History);
+    next.validate()?;
+    let mut grown = Learner::with_layout(
+        &next.env.obs_layout(),
+        ACT_DIM,
+        &next.learner,
+        next.runner.seed,
+    )?;
+    grown
+        .load_state_keeping(&learner.state(), |name| name.contains("adapt"))
+        .context("carrying the teacher into phase 2")?;
+    let mut venv = VecEnv::new(
+        Arc::new(next.env.clone()),
+        &world.scene.model,
+        world.scene.terrain.clone(),
+        next.runner.num_envs,
+        world.threads,
+        world.env_seed ^ 0xADA9,
+    )?;
+    if let Some(levels) = &progress.terrain_levels {
+        venv.restore_terrain_levels(levels)
+            .context("restoring the terrain curriculum for phase 2")?;
+    }
+    *obs = venv.batch().obs.clone();
+    *envs = venv;
+    *learner = grown;
+    *cfg = next;
+    std::fs::write(dir.root.join("config.toml"), cfg.to_toml()).context("writing config.toml")?;
+    Ok(())
+}
 
 /// Runs phase 2 from `progress.iteration` up to `phase1_end + adaptation.iterations`.
 /// Returns whether it was interrupted, and the last checkpoint written (if any).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn adaptation_phase(
     dir: &RunDir,
-    cfg: &TrainConfig,
+    cfg: &mut TrainConfig,
     learner: &mut Learner,
     progress: &mut Progress,
     envs: &mut VecEnv,
     obs: &mut Vec<f32>,
+    world: &PhaseWorld,
     stop: &AtomicBool,
     bar: &ProgressBar,
 ) -> Result<(bool, Option<PathBuf>)> {
     let Some(a) = cfg.learner.adaptation.clone() else {
         return Ok((false, None));
     };
-    let r = &cfg.runner;
-    let end = r.iterations + a.iterations;
+    let end = cfg.runner.iterations + a.iterations;
     if progress.iteration >= end {
         return Ok((false, None));
     }
+    if cfg.env.obs_layout().range(&a.input).is_none() {
+        add_history(dir, cfg, learner, progress, envs, obs, world)?;
+    }
+    let r = &cfg.runner;
+    let cfg = &*cfg;
     learner.set_latent_source(LatentSource::Adaptation);
     log_line(
         bar,

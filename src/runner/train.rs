@@ -137,7 +137,7 @@ pub fn train(
     std::fs::create_dir_all(&dir.root)
         .with_context(|| format!("creating run directory {}", dir.root.display()))?;
     dir.remove_temp_files();
-    let (cfg, mut learner, mut progress) = if resume {
+    let (mut cfg, mut learner, mut progress) = if resume {
         let (path, loaded) = dir.resume_point()?;
         let mut stored = loaded.config;
         // runner settings that do not change what is learned may differ on resume
@@ -158,6 +158,7 @@ pub fn train(
         );
         (stored, loaded.learner, loaded.progress)
     } else {
+        cfg.validate()?;
         println!(
             "training {} envs x {} steps, critic {:?}, {}, seed {} -> {}",
             cfg.runner.num_envs,
@@ -331,13 +332,19 @@ pub fn train(
         }
     }
     if !interrupted {
+        let world = super::adapt::PhaseWorld {
+            scene: &scene,
+            threads,
+            env_seed,
+        };
         let (stopped, written) = super::adapt::adaptation_phase(
             &dir,
-            &cfg,
+            &mut cfg,
             &mut learner,
             &mut progress,
             &mut envs,
             &mut obs,
+            &world,
             &stop,
             &bar,
         )?;
