@@ -14,6 +14,8 @@ pub mod env;
 #[cfg(feature = "sim")]
 pub mod eval;
 #[cfg(feature = "sim")]
+pub mod experiment;
+#[cfg(feature = "sim")]
 pub mod export;
 #[cfg(feature = "sim")]
 pub mod robot;

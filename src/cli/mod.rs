@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod eval;
+pub mod experiment;
 pub mod export;
 pub mod inspect;
 pub mod play;
@@ -30,6 +31,8 @@ pub enum Command {
     Play(play::PlayArgs),
     /// Evaluate checkpoints (tracking; robustness benchmarks).
     Eval(eval::EvalArgs),
+    /// Run an experiment file: train what is missing, resume what is unfinished, skip what is done, evaluate with the paper's protocol, write tables and figures.
+    Experiment(experiment::ExperimentArgs),
     /// Export a checkpoint's policy to ONNX with a JSON sidecar for a robot controller (`--help`: the 50 Hz robot loop).
     Export(export::ExportArgs),
     /// Measure throughput (env steps/s versus the raw physics limit).
@@ -42,6 +45,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Play(args) => play::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Experiment(args) => experiment::run(&args),
         Command::Export(args) => export::run(&args),
         Command::Bench(args) => bench::run(&args),
     }

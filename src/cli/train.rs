@@ -104,28 +104,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
             (cfg, run_dir, false)
         }
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        let first = std::sync::OnceLock::new();
-        // SIGINT, SIGTERM (what schedulers send) and SIGHUP (ctrlc's `termination`).
-        ctrlc::set_handler(move || {
-            let t0 = *first.get_or_init(std::time::Instant::now);
-            // A second signal within a second is the same request delivered twice
-            // (GNU timeout signals the child and then its process group).
-            if stop.swap(true, Ordering::SeqCst) {
-                if t0.elapsed() >= std::time::Duration::from_secs(1) {
-                    eprintln!("second interrupt: exiting without a checkpoint");
-                    std::process::exit(130);
-                }
-                return;
-            }
-            eprintln!(
-                "interrupt (SIGINT/SIGTERM/SIGHUP): finishing this iteration and writing a checkpoint (interrupt again to abort)"
-            );
-        })
-        .context("installing the interrupt handler")?;
-    }
+    let stop = install_stop_handler()?;
     let target = RerunTarget::from_flags(
         args.rerun_save.as_deref(),
         args.rerun_spawn,
@@ -218,4 +197,32 @@ fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {
         cfg.learner.risk_label(),
         cfg.runner.seed
     ))
+}
+
+/// A flag set by SIGINT, SIGTERM (what schedulers send) or SIGHUP: the run
+/// finishes its iteration and writes a checkpoint. A second signal after more
+/// than a second exits at once.
+pub fn install_stop_handler() -> Result<Arc<AtomicBool>> {
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        let first = std::sync::OnceLock::new();
+        ctrlc::set_handler(move || {
+            let t0 = *first.get_or_init(std::time::Instant::now);
+            // A second signal within a second is the same request delivered twice
+            // (GNU timeout signals the child and then its process group).
+            if stop.swap(true, Ordering::SeqCst) {
+                if t0.elapsed() >= std::time::Duration::from_secs(1) {
+                    eprintln!("second interrupt: exiting without a checkpoint");
+                    std::process::exit(130);
+                }
+                return;
+            }
+            eprintln!(
+                "interrupt (SIGINT/SIGTERM/SIGHUP): finishing this iteration and writing a checkpoint (interrupt again to abort)"
+            );
+        })
+        .context("installing the interrupt handler")?;
+    }
+    Ok(stop)
 }

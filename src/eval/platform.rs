@@ -152,6 +152,8 @@ pub struct PlatformCell {
     pub success_pct: f64,
     /// How the episodes ended (env reason, or "payload_on_ground"), with counts.
     pub ends: Vec<(String, usize)>,
+    /// Whether each robot succeeded, seed-major (for bootstrap intervals).
+    pub success_per_robot: Vec<bool>,
 }
 
 impl PlatformCell {
@@ -169,6 +171,10 @@ impl PlatformCell {
             not_reached: count(DropOutcome::NotReached),
             success_pct: 100.0 * success as f64 / outcomes.len().max(1) as f64,
             ends: Vec::new(),
+            success_per_robot: outcomes
+                .iter()
+                .map(|&o| o == DropOutcome::Success)
+                .collect(),
         }
     }
 

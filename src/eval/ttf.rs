@@ -68,6 +68,8 @@ pub struct TtfCell {
     /// Distance walked from the spawn point / commanded distance, summed over the
     /// robots (a robot standing still never falls: this tells whether they walked).
     pub walked_ratio: f64,
+    /// Policy steps each robot survived, seed-major (for bootstrap intervals).
+    pub steps_per_robot: Vec<usize>,
 }
 
 /// All cells, in table order.
@@ -126,6 +128,7 @@ pub fn ttf_cell(
         episode_steps,
         walked_ratio: all.iter().map(|e| e.walked_m).sum::<f64>()
             / all.iter().map(|e| e.commanded_m).sum::<f64>(),
+        steps_per_robot: lengths,
     }
 }
 

@@ -1,0 +1,61 @@
+//! `rall experiment FILE`: train, resume or skip every run of an experiment
+//! file, then evaluate them with the paper's protocol and write the results.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Args;
+
+use crate::experiment::{run_experiment, run_state, ExperimentOptions, ExperimentSpec};
+
+#[derive(Debug, Args)]
+pub struct ExperimentArgs {
+    /// Experiment file (e.g. experiments/paper.toml): runs, evaluations, the paper's numbers.
+    pub file: PathBuf,
+    /// Only train (resume, skip) the runs.
+    #[arg(long, conflicts_with_all = ["eval_only", "status"])]
+    pub train_only: bool,
+    /// Only evaluate the trained runs and write the results.
+    #[arg(long, conflicts_with = "status")]
+    pub eval_only: bool,
+    /// Evaluate runs that have not reached their budget at their latest checkpoint
+    /// (the tables mark them unfinished).
+    #[arg(long)]
+    pub allow_unfinished: bool,
+    /// Print where every run stands and exit.
+    #[arg(long)]
+    pub status: bool,
+}
+
+pub fn run(args: &ExperimentArgs) -> Result<()> {
+    let spec = ExperimentSpec::from_file(&args.file)?;
+    if args.status {
+        for r in &spec.runs {
+            let s = run_state(&spec, r)?;
+            let at = s.progress.as_ref().map_or(0, |p| p.iteration);
+            let state = if s.done() {
+                "done"
+            } else if s.progress.is_some() {
+                "unfinished"
+            } else {
+                "not started"
+            };
+            println!(
+                "{:<16} {:<12} {:>6} / {:<6} {}",
+                r.label,
+                state,
+                at,
+                s.target,
+                s.dir.display()
+            );
+        }
+        return Ok(());
+    }
+    let opts = ExperimentOptions {
+        train: !args.eval_only,
+        evaluate: !args.train_only,
+        allow_unfinished: args.allow_unfinished,
+    };
+    let stop = super::train::install_stop_handler()?;
+    run_experiment(&spec, &opts, stop)
+}

@@ -1,0 +1,326 @@
+//! `rall experiment FILE`: the paper's campaign from one file. Trains what is
+//! missing, resumes what is unfinished, skips what is done; then evaluates every
+//! policy with the paper's protocol (tracking, table I TTF, table II platform
+//! drops, race track with the IQR meta controller) and writes tables beside the
+//! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
+
+pub mod plots;
+pub mod results;
+pub mod spec;
+pub mod stats;
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+
+use crate::config::TrainConfig;
+use crate::env::{build_scene, VecEnv};
+use crate::eval::{
+    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env, ActionMode,
+    GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams,
+    TtfOptions,
+};
+use crate::runner::{train, Progress, RunDir};
+pub use results::ExperimentResults;
+pub use spec::ExperimentSpec;
+
+/// What to do.
+#[derive(Debug, Clone)]
+pub struct ExperimentOptions {
+    pub train: bool,
+    pub evaluate: bool,
+    /// Evaluate unfinished runs at their latest checkpoint instead of refusing.
+    pub allow_unfinished: bool,
+}
+
+/// A run's state on disk.
+#[derive(Debug, Clone)]
+pub struct RunState {
+    pub dir: PathBuf,
+    /// Iterations to reach (PPO + RMA's phase 2).
+    pub target: usize,
+    pub progress: Option<Progress>,
+}
+
+impl RunState {
+    pub fn done(&self) -> bool {
+        self.progress
+            .as_ref()
+            .is_some_and(|p| p.iteration >= self.target)
+    }
+}
+
+/// The config of run `r` as the experiment trains it.
+pub fn run_config(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<TrainConfig> {
+    let mut cfg = TrainConfig::from_toml_file(&r.config)
+        .with_context(|| format!("run {:?}", r.label))?;
+    cfg.runner.seed = r.seed;
+    cfg.runner.iterations = r.iterations;
+    cfg.runner.threads = spec.threads;
+    Ok(cfg)
+}
+
+/// Where run `r` stands (reads its newest readable checkpoint).
+pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
+    let cfg = run_config(spec, r)?;
+    let target = r.iterations + cfg.learner.adaptation.as_ref().map_or(0, |a| a.iterations);
+    let dir = spec.run_dir(r);
+    let rd = RunDir { root: dir.clone() };
+    let progress = if rd.latest().exists() || rd.root.join("checkpoints").exists() {
+        Some(rd.resume_point()?.1.progress)
+    } else {
+        None
+    };
+    Ok(RunState {
+        dir,
+        target,
+        progress,
+    })
+}
+
+/// Trains every run that is not done, in file order; stops (resumably) on a signal.
+pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
+    let n = spec.runs.len();
+    for (k, r) in spec.runs.iter().enumerate() {
+        let state = run_state(spec, r)?;
+        let head = format!("[run {}/{n}] {} ({})", k + 1, r.label, state.dir.display());
+        if state.done() {
+            eprintln!("{head}: done ({} iterations), skipped", state.target);
+            continue;
+        }
+        let cfg = run_config(spec, r)?;
+        let resume = state.progress.is_some();
+        match &state.progress {
+            Some(p) => {
+                let per_it = p.wall_s / p.iteration.max(1) as f64;
+                let left = state.target.saturating_sub(p.iteration);
+                eprintln!(
+                    "{head}: resuming at iteration {} of {}; about {:.0} min left at its pace so far",
+                    p.iteration,
+                    state.target,
+                    left as f64 * per_it / 60.0
+                );
+            }
+            None => eprintln!("{head}: starting ({} iterations)", state.target),
+        }
+        let summary = train(cfg, &state.dir, resume, stop.clone(), &mut ())
+            .with_context(|| format!("training run {:?}", r.label))?;
+        if summary.interrupted {
+            bail!(
+                "interrupted during run {:?} at iteration {}; the same command continues it",
+                r.label,
+                summary.iterations_done
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The latest policy of the run labelled `label`.
+fn load_run(spec: &ExperimentSpec, label: &str) -> Result<NamedPolicy> {
+    let r = spec
+        .run(label)
+        .with_context(|| format!("no run labelled {label:?}"))?;
+    let rd = RunDir {
+        root: spec.run_dir(r),
+    };
+    let (path, _) = rd
+        .resume_point()
+        .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?;
+    NamedPolicy::load(label, &path)
+}
+
+fn load_runs(spec: &ExperimentSpec, labels: &[String]) -> Result<Vec<NamedPolicy>> {
+    labels.iter().map(|l| load_run(spec, l)).collect()
+}
+
+fn seeds(first: u64, n: usize) -> Vec<u64> {
+    (first..first + n as u64).collect()
+}
+
+fn parse_load(s: &str) -> Result<Load> {
+    Load::PAYLOADS
+        .into_iter()
+        .find(|l| l.name() == s)
+        .with_context(|| format!("ttf.loads: unknown load {s:?} (ball, frozen_arm, moving_arm)"))
+}
+
+/// The meta controller's threshold by the experiment's rule: a quantile of the
+/// risky critic's IQR over robots walking one episode on flat ground.
+pub fn calibrate_threshold(spec: &ExperimentSpec, risky: &NamedPolicy, threads: usize) -> Result<f32> {
+    let m = &spec.meta;
+    anyhow::ensure!(
+        risky.learner.config().critic == crate::learn::CriticKind::Iqn,
+        "meta.risky = {:?} has a scalar critic: the meta controller needs the IQR of a value distribution (an IQN critic)",
+        m.risky
+    );
+    let cfg = tracking_env(&risky.env);
+    let scene = build_scene(&cfg, m.calibration_seed)?;
+    let n = m.calibration_robots.max(1);
+    let mut venv = VecEnv::new(
+        Arc::new(cfg.clone()),
+        &scene.model,
+        scene.terrain.clone(),
+        n,
+        threads,
+        m.calibration_seed,
+    )?;
+    let mut obs = venv.batch().obs.clone();
+    let mut iqrs = Vec::new();
+    for _ in 0..cfg.max_episode_steps() {
+        iqrs.extend(risky.learner.iqr(&obs).iter().map(|&v| v as f64));
+        let actions = risky.learner.act_mean(&obs);
+        obs.copy_from_slice(&venv.step(&actions).obs);
+    }
+    let t = stats::quantile(&iqrs, m.threshold_quantile);
+    anyhow::ensure!(t.is_finite(), "meta.risky = {:?}: its critic's IQR is {t}", m.risky);
+    Ok(t as f32)
+}
+
+/// Runs every evaluation of the experiment on the runs' latest checkpoints.
+pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
+    let threads = crate::config::worker_threads(spec.threads);
+    let start = Instant::now();
+    let mut runs = Vec::new();
+    for r in &spec.runs {
+        let state = run_state(spec, r)?;
+        if !state.done() && !opts.allow_unfinished {
+            bail!(
+                "run {:?} is not finished ({} of {} iterations): train it (`rall experiment FILE`) or evaluate it as it is with --allow-unfinished",
+                r.label,
+                state.progress.as_ref().map_or(0, |p| p.iteration),
+                state.target
+            );
+        }
+        runs.push((r.clone(), state));
+    }
+    let stages = 5;
+    let stage = |k: usize, what: &str| eprintln!("[eval {k}/{stages}] {what} ({:.1} min so far)", start.elapsed().as_secs_f64() / 60.0);
+
+    stage(1, "velocity tracking of every policy");
+    let mut tracking = Vec::new();
+    for (r, _) in &runs {
+        let p = load_run(spec, &r.label)?;
+        let env = tracking_env(&p.env);
+        let t = evaluate_tracking(
+            &p.learner,
+            &env,
+            spec.tracking.episodes,
+            threads,
+            spec.tracking.seed,
+            ActionMode::Mean,
+        )?;
+        tracking.push((r.label.clone(), t));
+    }
+
+    stage(2, "table I: time to fall");
+    let ttf_opts = TtfOptions {
+        seeds: seeds(spec.ttf.first_seed, spec.ttf.seeds),
+        repeats: spec.ttf.repeats,
+        threads,
+        loads: spec
+            .ttf
+            .loads
+            .iter()
+            .map(|l| parse_load(l))
+            .collect::<Result<_>>()?,
+        terrains: vec![GroundKind::Flat, GroundKind::Rough],
+        pushes: vec![false, true],
+        params: ScenarioParams::default(),
+    };
+    let ttf = evaluate_ttf(&load_runs(spec, &spec.ttf.methods)?, &ttf_opts, |c| {
+        eprintln!(
+            "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
+            c.load.name(),
+            c.terrain,
+            c.push,
+            c.policy,
+            c.ttf
+        )
+    })?;
+
+    stage(3, "table II: platform drops");
+    let platform_opts = PlatformOptions {
+        heights_m: spec.platform.heights_m.clone(),
+        seeds: seeds(spec.platform.first_seed, spec.platform.seeds),
+        repeats: spec.platform.repeats,
+        threads,
+        settle_s: 2.0,
+        load: Load::None,
+        params: ScenarioParams::default(),
+    };
+    let platform = evaluate_platform(&load_runs(spec, &spec.platform.methods)?, &platform_opts, |c| {
+        eprintln!(
+            "  {:.2} m {:<14} success {:.1}%",
+            c.height_m, c.policy, c.success_pct
+        )
+    })?;
+
+    stage(4, "meta controller threshold (rule of the experiment file)");
+    let risky = load_run(spec, &spec.meta.risky)?;
+    let threshold = calibrate_threshold(spec, &risky, threads)?;
+    eprintln!(
+        "  threshold {threshold:.4} = quantile {} of {}'s IQR on flat ground",
+        spec.meta.threshold_quantile, spec.meta.risky
+    );
+
+    stage(5, "race track");
+    let mut race_labels = spec.race.methods.clone();
+    for l in [&spec.meta.risky, &spec.meta.safe] {
+        if !race_labels.contains(l) {
+            race_labels.push(l.clone());
+        }
+    }
+    let meta = MetaConfig {
+        name: spec.meta.label.clone(),
+        risky: spec.meta.risky.clone(),
+        safe: spec.meta.safe.clone(),
+        threshold,
+        hysteresis: threshold * spec.meta.hysteresis_fraction,
+        min_safe_steps: spec.meta.min_safe_steps,
+    };
+    let race_opts = RaceOptions {
+        agents: spec.race.agents,
+        episodes: spec.race.episodes,
+        threads,
+        seed: spec.race.seed,
+        course_seed: spec.race.course_seed,
+        params: ScenarioParams::default(),
+    };
+    let race = evaluate_race(&load_runs(spec, &race_labels)?, Some(&meta), &race_opts, |r| {
+        eprintln!(
+            "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+            r.name, r.q25, r.q50, r.q75
+        )
+    })?;
+    Ok(ExperimentResults::new(
+        spec,
+        runs,
+        tracking,
+        ttf,
+        platform,
+        threshold,
+        race,
+        start.elapsed().as_secs_f64(),
+    ))
+}
+
+/// Trains (if asked), evaluates (if asked) and writes the results.
+pub fn run_experiment(
+    spec: &ExperimentSpec,
+    opts: &ExperimentOptions,
+    stop: Arc<AtomicBool>,
+) -> Result<()> {
+    if opts.train {
+        train_all(spec, stop)?;
+    }
+    if opts.evaluate {
+        let results = evaluate_all(spec, opts)?;
+        results.write(&spec.results_dir)?;
+        eprintln!("results in {}", spec.results_dir.display());
+    }
+    Ok(())
+}

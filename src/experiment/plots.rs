@@ -1,0 +1,220 @@
+//! SVG figures of an experiment (plotters): grouped bars with interval whiskers.
+
+use std::path::Path;
+
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+
+use super::results::ExperimentResults;
+use super::stats::Estimate;
+
+const PALETTE: [RGBColor; 7] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+];
+
+fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow!("drawing a figure: {e}")
+}
+
+/// One panel of grouped bars: `groups` on x, one bar per series, whiskers at [lo, hi].
+fn bars<DB: DrawingBackend>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    y_label: &str,
+    groups: &[String],
+    series: &[String],
+    value: &dyn Fn(usize, usize) -> Option<Estimate>,
+    y_max: f64,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let n = groups.len().max(1) as f64;
+    let mut chart = ChartBuilder::on(area)
+        .caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(0.0..n, 0.0..y_max)
+        .map_err(err)?;
+    let names = groups.to_vec();
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .x_labels(groups.len() * 2 + 1)
+        .x_label_formatter(&move |x| {
+            let k = x.floor() as usize;
+            if (x - k as f64 - 0.5).abs() < 0.26 {
+                names.get(k).cloned().unwrap_or_default()
+            } else {
+                String::new()
+            }
+        })
+        .y_desc(y_label)
+        .draw()
+        .map_err(err)?;
+    let m = series.len().max(1) as f64;
+    let width = 0.8 / m;
+    for (si, name) in series.iter().enumerate() {
+        let color = PALETTE[si % PALETTE.len()];
+        let mut rects = Vec::new();
+        let mut whiskers = Vec::new();
+        for gi in 0..groups.len() {
+            if let Some(e) = value(gi, si) {
+                let x0 = gi as f64 + 0.1 + si as f64 * width;
+                rects.push(Rectangle::new([(x0, 0.0), (x0 + width * 0.9, e.value)], color.filled()));
+                let xc = x0 + width * 0.45;
+                whiskers.push(PathElement::new(vec![(xc, e.lo), (xc, e.hi)], BLACK.stroke_width(1)));
+            }
+        }
+        chart
+            .draw_series(rects)
+            .map_err(err)?
+            .label(name.clone())
+            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
+        chart.draw_series(whiskers).map_err(err)?;
+    }
+    chart
+        .configure_series_labels()
+        .border_style(BLACK)
+        .background_style(WHITE.mix(0.8))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(err)?;
+    Ok(())
+}
+
+fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
+    let loads: Vec<String> = unique(r.ttf.iter().map(|c| c.load.clone()));
+    let methods: Vec<String> = unique(r.ttf.iter().map(|c| c.method.clone()));
+    let cols = [("flat", false), ("flat", true), ("random", false), ("random", true)];
+    let groups: Vec<String> = cols
+        .iter()
+        .map(|(t, p)| format!("{t}{}", if *p { "+push" } else { "" }))
+        .collect();
+    let root = SVGBackend::new(path, (420 * loads.len().max(1) as u32, 380)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let panels = root.split_evenly((1, loads.len().max(1)));
+    for (load, area) in loads.iter().zip(panels.iter()) {
+        let value = |g: usize, s: usize| {
+            r.ttf
+                .iter()
+                .find(|c| {
+                    &c.load == load && c.method == methods[s] && c.terrain == cols[g].0 && c.push == cols[g].1
+                })
+                .map(|c| c.ttf)
+        };
+        bars(area, &format!("TTF, {load}"), "time to fall", &groups, &methods, &value, 1.05)?;
+    }
+    root.present().map_err(err)
+}
+
+fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
+    let heights: Vec<String> = unique(r.platform.iter().map(|c| format!("{:.2} m", c.height_m)));
+    let methods: Vec<String> = unique(r.platform.iter().map(|c| c.method.clone()));
+    let root = SVGBackend::new(path, (640, 400)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let value = |g: usize, s: usize| {
+        r.platform
+            .iter()
+            .find(|c| format!("{:.2} m", c.height_m) == heights[g] && c.method == methods[s])
+            .map(|c| c.success_pct)
+    };
+    bars(&root, "Walking off a platform", "success %", &heights, &methods, &value, 105.0)?;
+    root.present().map_err(err)
+}
+
+fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
+    let groups = vec!["q0.25".to_string(), "q0.5".into(), "q0.75".into()];
+    let methods: Vec<String> = r.race.iter().map(|c| c.method.clone()).collect();
+    let all: Vec<Estimate> = r.race.iter().flat_map(|c| [c.q25, c.q50, c.q75]).collect();
+    let y_max = all.iter().map(|e| e.hi).fold(1e-6, f64::max) * 1.15;
+    let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let value = |g: usize, s: usize| {
+        r.race.get(s).map(|c| [c.q25, c.q50, c.q75][g])
+    };
+    bars(&root, "Race track returns", "episode return", &groups, &methods, &value, y_max)?;
+    root.present().map_err(err)
+}
+
+fn race_iqr_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
+    let root = SVGBackend::new(path, (820, 380)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let Some(m) = &r.meta else {
+        return root.present().map_err(err);
+    };
+    let bins = &m.iqr_by_x;
+    let x_max = bins.iter().map(|b| b.x0_m + 0.5).fold(1.0, f64::max);
+    let iqr_max = bins.iter().map(|b| b.mean_iqr).fold(1e-6, f64::max) * 1.15;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(
+            format!("{}'s critic IQR along the race track", m.risky),
+            ("sans-serif", 18),
+        )
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(55)
+        .right_y_label_area_size(55)
+        .build_cartesian_2d(0.0..x_max, 0.0..iqr_max)
+        .map_err(err)?
+        .set_secondary_coord(0.0..x_max, 0.0..1.0);
+    chart
+        .configure_mesh()
+        .x_desc("trunk x (m)")
+        .y_desc("mean IQR")
+        .draw()
+        .map_err(err)?;
+    chart
+        .configure_secondary_axes()
+        .y_desc("fraction on the safe policy")
+        .draw()
+        .map_err(err)?;
+    chart
+        .draw_series(LineSeries::new(
+            bins.iter().map(|b| (b.x0_m + 0.25, b.mean_iqr)),
+            PALETTE[0].stroke_width(2),
+        ))
+        .map_err(err)?
+        .label("IQR (left axis)")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 12, y)], PALETTE[0].stroke_width(2)));
+    chart
+        .draw_secondary_series(LineSeries::new(
+            bins.iter().map(|b| (b.x0_m + 0.25, b.safe_fraction)),
+            PALETTE[3].stroke_width(2),
+        ))
+        .map_err(err)?
+        .label(format!("{} on {} (right axis)", m.label, m.safe))
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 12, y)], PALETTE[3].stroke_width(2)));
+    chart
+        .configure_series_labels()
+        .border_style(BLACK)
+        .background_style(WHITE.mix(0.8))
+        .draw()
+        .map_err(err)?;
+    root.present().map_err(err)
+}
+
+fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for s in it {
+        if !out.contains(&s) {
+            out.push(s);
+        }
+    }
+    out
+}
+
+/// Draws every figure of [`super::results::plots_list`] into `dir`.
+pub fn write_all(r: &ExperimentResults, dir: &Path) -> Result<()> {
+    ttf_figure(r, &dir.join("ttf.svg"))?;
+    platform_figure(r, &dir.join("platform.svg"))?;
+    race_figure(r, &dir.join("race.svg"))?;
+    race_iqr_figure(r, &dir.join("race_iqr.svg"))
+}

@@ -1,0 +1,435 @@
+//! The experiment's numbers: every cell with its bootstrap interval, the
+//! paper's number beside it, written as Markdown, CSV, JSON and figures.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+
+use super::spec::{ExperimentSpec, RunSpec};
+use super::stats::{bootstrap, mean, quantile, Estimate};
+use super::RunState;
+use crate::eval::race::IqrBin;
+use crate::eval::report::csv_field;
+use crate::eval::{PlatformReport, RaceReport, TrackingReport, TtfReport};
+
+/// One training run: budget, what it reached, how it tracks commands.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunRow {
+    pub label: String,
+    pub config: String,
+    pub seed: u64,
+    pub dir: String,
+    pub iterations_done: usize,
+    pub iterations_target: usize,
+    pub env_steps: u64,
+    pub wall_clock_h: f64,
+    /// Mean terrain-curriculum level over the envs at the checkpoint (rough ground).
+    pub terrain_level: Option<f64>,
+    pub lin_tracking: f64,
+    pub yaw_tracking: f64,
+    pub fall_rate: f64,
+    pub tracking_episodes: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TtfRow {
+    pub method: String,
+    pub load: String,
+    pub terrain: String,
+    pub push: bool,
+    pub ttf: Estimate,
+    pub robots: usize,
+    pub paper: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct PlatformRow {
+    pub method: String,
+    pub height_m: f64,
+    pub success_pct: Estimate,
+    pub robots: usize,
+    pub paper: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct RaceRow {
+    pub method: String,
+    pub q25: Estimate,
+    pub q50: Estimate,
+    pub q75: Estimate,
+    pub mean_return: f64,
+    pub fall_fraction: f64,
+    pub episodes: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MetaSummary {
+    pub label: String,
+    pub risky: String,
+    pub safe: String,
+    pub rule: String,
+    pub threshold: f32,
+    pub safe_fraction: f64,
+    pub switches_per_episode: f64,
+    pub iqr_by_x: Vec<IqrBin>,
+}
+
+/// Everything the experiment measured.
+#[derive(Debug, Clone, Serialize)]
+pub struct ExperimentResults {
+    pub name: String,
+    pub confidence: String,
+    pub runs: Vec<RunRow>,
+    pub ttf: Vec<TtfRow>,
+    pub platform: Vec<PlatformRow>,
+    pub race: Vec<RaceRow>,
+    pub meta: Option<MetaSummary>,
+    /// Not part of the tables (they are reproducible to the byte; this is not).
+    #[serde(skip)]
+    pub evaluation_wall_clock_min: f64,
+}
+
+const TTF_COLUMNS: [(&str, bool); 4] = [
+    ("flat", false),
+    ("flat", true),
+    ("random", false),
+    ("random", true),
+];
+
+impl ExperimentResults {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        spec: &ExperimentSpec,
+        runs: Vec<(RunSpec, RunState)>,
+        tracking: Vec<(String, TrackingReport)>,
+        ttf: TtfReport,
+        platform: PlatformReport,
+        threshold: f32,
+        race: RaceReport,
+        eval_wall_s: f64,
+    ) -> ExperimentResults {
+        let b = &spec.bootstrap;
+        let mut cell_seed = b.seed;
+        let mut ci = |units: &[f64], stat: &dyn Fn(&[f64]) -> f64| {
+            cell_seed += 1;
+            bootstrap(units, stat, b.resamples, b.level, cell_seed)
+        };
+        let run_rows = runs
+            .iter()
+            .map(|(r, s)| {
+                let p = s.progress.clone().unwrap_or_default();
+                let t = tracking.iter().find(|(l, _)| *l == r.label).map(|(_, t)| t);
+                RunRow {
+                    label: r.label.clone(),
+                    config: r.config.display().to_string(),
+                    seed: r.seed,
+                    dir: s.dir.display().to_string(),
+                    iterations_done: p.iteration,
+                    iterations_target: s.target,
+                    env_steps: p.total_env_steps,
+                    wall_clock_h: p.wall_s / 3600.0,
+                    terrain_level: p
+                        .terrain_levels
+                        .as_ref()
+                        .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
+                    lin_tracking: t.map_or(f64::NAN, |t| t.lin_vel_score),
+                    yaw_tracking: t.map_or(f64::NAN, |t| t.yaw_rate_score),
+                    fall_rate: t.map_or(f64::NAN, |t| t.fall_rate),
+                    tracking_episodes: t.map_or(0, |t| t.episodes),
+                }
+            })
+            .collect();
+        let ttf_rows = ttf
+            .cells
+            .iter()
+            .map(|c| {
+                let steps: Vec<f64> = c.steps_per_robot.iter().map(|&s| s as f64).collect();
+                let len = c.episode_steps.max(1) as f64;
+                let col = TTF_COLUMNS
+                    .iter()
+                    .position(|&(t, p)| t == c.terrain && p == c.push);
+                let paper = spec
+                    .paper
+                    .ttf
+                    .iter()
+                    .find(|row| row.load == c.load.name() && row.method == c.policy)
+                    .zip(col)
+                    .map(|(row, k)| row.ttf[k]);
+                TtfRow {
+                    method: c.policy.clone(),
+                    load: c.load.name().to_string(),
+                    terrain: c.terrain.clone(),
+                    push: c.push,
+                    ttf: ci(&steps, &|v| mean(v) / len),
+                    robots: c.robots,
+                    paper,
+                }
+            })
+            .collect();
+        let platform_rows = platform
+            .cells
+            .iter()
+            .map(|c| {
+                let ok: Vec<f64> = c
+                    .success_per_robot
+                    .iter()
+                    .map(|&s| if s { 100.0 } else { 0.0 })
+                    .collect();
+                PlatformRow {
+                    method: c.policy.clone(),
+                    height_m: c.height_m,
+                    success_pct: ci(&ok, &mean),
+                    robots: c.robots,
+                    paper: spec
+                        .paper
+                        .platform
+                        .iter()
+                        .find(|p| (p.height_m - c.height_m).abs() < 1e-6 && p.method == c.policy)
+                        .map(|p| p.success_pct),
+                }
+            })
+            .collect();
+        let per_agent = race.options.episodes.max(1);
+        let mut meta = None;
+        let mut race_rows = Vec::new();
+        for r in &race.rows {
+            // agents are the bootstrap units: each keeps its episodes together
+            let agents: Vec<Vec<f64>> = r.returns.chunks(per_agent).map(|c| c.to_vec()).collect();
+            let q = |q: f64| {
+                move |a: &[Vec<f64>]| quantile(&a.iter().flatten().copied().collect::<Vec<_>>(), q)
+            };
+            cell_seed += 1;
+            let est = |stat: &dyn Fn(&[Vec<f64>]) -> f64, seed: u64| {
+                bootstrap(&agents, stat, b.resamples, b.level, seed)
+            };
+            race_rows.push(RaceRow {
+                method: r.name.clone(),
+                q25: est(&q(0.25), cell_seed),
+                q50: est(&q(0.5), cell_seed + 1000),
+                q75: est(&q(0.75), cell_seed + 2000),
+                mean_return: r.mean_return,
+                fall_fraction: r.fall_fraction,
+                episodes: r.episodes,
+            });
+            if let Some(m) = &r.meta {
+                meta = Some(MetaSummary {
+                    label: r.name.clone(),
+                    risky: m.config.risky.clone(),
+                    safe: m.config.safe.clone(),
+                    rule: format!(
+                        "threshold = quantile {} of {}'s critic IQR over {} robots x one episode on flat ground (random commands); back below {:.0}% of it after at least {} steps",
+                        spec.meta.threshold_quantile,
+                        spec.meta.risky,
+                        spec.meta.calibration_robots,
+                        100.0 * (1.0 - spec.meta.hysteresis_fraction),
+                        spec.meta.min_safe_steps
+                    ),
+                    threshold,
+                    safe_fraction: m.safe_fraction,
+                    switches_per_episode: m.switches_per_episode,
+                    iqr_by_x: m.iqr_by_x.clone(),
+                });
+            }
+        }
+        ExperimentResults {
+            name: spec.name.clone(),
+            confidence: format!(
+                "{:.0}% percentile bootstrap over robots (race: over agents), {} resamples, seed {}",
+                100.0 * b.level,
+                b.resamples,
+                b.seed
+            ),
+            runs: run_rows,
+            ttf: ttf_rows,
+            platform: platform_rows,
+            race: race_rows,
+            meta,
+            evaluation_wall_clock_min: eval_wall_s / 60.0,
+        }
+    }
+
+    /// Methods in table order (first appearance).
+    fn methods_of<'a>(names: impl Iterator<Item = &'a String>) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for n in names {
+            if !out.contains(n) {
+                out.push(n.clone());
+            }
+        }
+        out
+    }
+
+    pub fn markdown(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(s, "# Results: {}\n", self.name);
+        let _ = writeln!(
+            s,
+            "Every number: ours with its {} in brackets; the paper's beside it where it gives one.\n",
+            self.confidence
+        );
+        let _ = writeln!(s, "## Training runs\n");
+        let _ = writeln!(s, "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |");
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
+        for r in &self.runs {
+            let unfinished = if r.iterations_done < r.iterations_target { " (unfinished)" } else { "" };
+            let _ = writeln!(
+                s,
+                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {:.3} | {:.3} | {:.1}% |",
+                r.label,
+                r.iterations_done,
+                r.iterations_target,
+                r.env_steps as f64 / 1e6,
+                r.wall_clock_h,
+                r.terrain_level.map_or("-".into(), |l| format!("{l:.2}")),
+                r.lin_tracking,
+                r.yaw_tracking,
+                100.0 * r.fall_rate
+            );
+        }
+        let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.\n",
+            self.runs.first().map_or(0, |r| r.tracking_episodes));
+
+        let _ = writeln!(s, "## Table I: Time to Fall\n");
+        let _ = writeln!(s, "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |");
+        let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
+        let loads = Self::methods_of(self.ttf.iter().map(|r| &r.load));
+        let methods = Self::methods_of(self.ttf.iter().map(|r| &r.method));
+        for l in &loads {
+            for m in &methods {
+                let mut line = format!("| {l} | {m} |");
+                for (t, p) in TTF_COLUMNS {
+                    let cell = self
+                        .ttf
+                        .iter()
+                        .find(|r| &r.load == l && &r.method == m && r.terrain == t && r.push == p);
+                    let text = cell.map_or("-".into(), |c| {
+                        let paper = c.paper.map_or(String::new(), |p| format!(" (paper {p:.3})"));
+                        format!("{}{paper}", c.ttf.show(3))
+                    });
+                    let _ = write!(line, " {text} |");
+                }
+                let _ = writeln!(s, "{line}");
+            }
+        }
+        let _ = writeln!(s, "\n## Table II: walking off a platform (success %)\n");
+        let _ = writeln!(s, "| Height | Method | ours | paper | robots |");
+        let _ = writeln!(s, "|---:|---|---:|---:|---:|");
+        for r in &self.platform {
+            let _ = writeln!(
+                s,
+                "| {:.2} m | {} | {} | {} | {} |",
+                r.height_m,
+                r.method,
+                r.success_pct.show(1),
+                r.paper.map_or("-".into(), |p| format!("{p:.1}")),
+                r.robots
+            );
+        }
+        let _ = writeln!(s, "\n## Race track: return quantiles\n");
+        let _ = writeln!(s, "| Method | q0.25 (worst case) | q0.5 | q0.75 (best case) | mean | falls | episodes |");
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
+        for r in &self.race {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {:.2} | {:.1}% | {} |",
+                r.method,
+                r.q25.show(2),
+                r.q50.show(2),
+                r.q75.show(2),
+                r.mean_return,
+                100.0 * r.fall_fraction,
+                r.episodes
+            );
+        }
+        if let Some(m) = &self.meta {
+            let _ = writeln!(
+                s,
+                "\nMeta controller {}: {} (risk neutral) / {} (risk averse); {}: {:.4}. On the race it acted with {} for {:.1}% of robot-steps, {:.2} switches per episode.",
+                m.label,
+                m.risky,
+                m.safe,
+                m.rule,
+                m.threshold,
+                m.safe,
+                100.0 * m.safe_fraction,
+                m.switches_per_episode
+            );
+        }
+        let _ = writeln!(s, "\nThe paper gives the race only as a figure (fig. 4, right): the meta controller has the highest return at all three quantiles.");
+        let _ = writeln!(s, "\n## Figures\n");
+        for (f, what) in plots_list() {
+            let _ = writeln!(s, "- [{f}](figures/{f}): {what}");
+        }
+        s
+    }
+
+    fn csv_files(&self) -> Vec<(&'static str, String)> {
+        let est = |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
+        let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
+        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,yaw_tracking,fall_rate\n");
+        for r in &self.runs {
+            let _ = writeln!(
+                runs,
+                "{},{},{},{},{},{},{:.4},{},{:.4},{:.4},{:.4}",
+                csv_field(&r.label),
+                csv_field(&r.config),
+                r.seed,
+                r.iterations_done,
+                r.iterations_target,
+                r.env_steps,
+                r.wall_clock_h,
+                opt(r.terrain_level),
+                r.lin_tracking,
+                r.yaw_tracking,
+                r.fall_rate
+            );
+        }
+        let mut ttf = String::from("method,load,terrain,push,ttf,ttf_lo,ttf_hi,robots,paper\n");
+        for r in &self.ttf {
+            let _ = writeln!(ttf, "{},{},{},{},{},{},{}", csv_field(&r.method), r.load, r.terrain, r.push, est(&r.ttf, 4), r.robots, opt(r.paper));
+        }
+        let mut platform = String::from("method,height_m,success_pct,success_lo,success_hi,robots,paper\n");
+        for r in &self.platform {
+            let _ = writeln!(platform, "{},{},{},{},{}", csv_field(&r.method), r.height_m, est(&r.success_pct, 2), r.robots, opt(r.paper));
+        }
+        let mut race = String::from("method,q25,q25_lo,q25_hi,q50,q50_lo,q50_hi,q75,q75_lo,q75_hi,mean_return,fall_fraction,episodes\n");
+        for r in &self.race {
+            let _ = writeln!(race, "{},{},{},{},{:.4},{:.4},{}", csv_field(&r.method), est(&r.q25, 4), est(&r.q50, 4), est(&r.q75, 4), r.mean_return, r.fall_fraction, r.episodes);
+        }
+        vec![("runs.csv", runs), ("ttf.csv", ttf), ("platform.csv", platform), ("race.csv", race)]
+    }
+
+    /// Writes README.md, the CSVs, results.json and figures/ into `dir`.
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir.join("figures"))
+            .with_context(|| format!("creating {}", dir.display()))?;
+        let write = |name: &str, text: &str| -> Result<()> {
+            let path = dir.join(name);
+            let tmp = dir.join(format!(".{name}.tmp"));
+            std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+            std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))
+        };
+        write("README.md", &self.markdown())?;
+        for (name, text) in self.csv_files() {
+            write(name, &text)?;
+        }
+        write("results.json", &serde_json::to_string_pretty(self)?)?;
+        write(
+            "evaluation_time.txt",
+            &format!("{:.2} min\n", self.evaluation_wall_clock_min),
+        )?;
+        super::plots::write_all(self, &dir.join("figures"))
+    }
+}
+
+/// The figures [`super::plots::write_all`] draws.
+pub fn plots_list() -> [(&'static str, &'static str); 4] {
+    [
+        ("ttf.svg", "TTF per cell and method, with intervals (table I)"),
+        ("platform.svg", "platform success per height and method (table II)"),
+        ("race.svg", "race return quantiles per method and the meta controller"),
+        ("race_iqr.svg", "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"),
+    ]
+}

@@ -1,0 +1,242 @@
+//! The experiment file (`experiments/paper.toml`): runs to train and the
+//! evaluations of the paper, as data.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+/// One experiment: what to train, how to evaluate, the paper's numbers to compare with.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExperimentSpec {
+    pub name: String,
+    /// Run directories go here (`<runs_dir>/<run name>-s<seed>`).
+    pub runs_dir: PathBuf,
+    /// Tables, CSV/JSON and figures go here.
+    pub results_dir: PathBuf,
+    /// Worker threads for training and evaluation (0 = all cores).
+    #[serde(default)]
+    pub threads: usize,
+    #[serde(rename = "run")]
+    pub runs: Vec<RunSpec>,
+    pub tracking: TrackingSpec,
+    pub ttf: TtfSpec,
+    pub platform: PlatformSpec,
+    pub race: RaceSpec,
+    pub meta: MetaSpec,
+    #[serde(default)]
+    pub bootstrap: BootstrapSpec,
+    #[serde(default)]
+    pub paper: PaperNumbers,
+}
+
+/// One training run: a method config, a seed and a budget.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunSpec {
+    /// Directory name stem (`<name>-s<seed>`).
+    pub name: String,
+    /// Row label in the tables (the paper's method names).
+    pub label: String,
+    pub config: PathBuf,
+    pub seed: u64,
+    /// PPO iterations (RMA's phase 2 comes on top, from its config).
+    pub iterations: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackingSpec {
+    pub episodes: usize,
+    pub seed: u64,
+}
+
+/// Table I: TTF per load x terrain x push.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TtfSpec {
+    /// Labels of the runs to evaluate.
+    pub methods: Vec<String>,
+    pub seeds: usize,
+    pub repeats: usize,
+    #[serde(default)]
+    pub first_seed: u64,
+    /// Loads (default: ball, frozen_arm, moving_arm).
+    #[serde(default = "all_loads")]
+    pub loads: Vec<String>,
+}
+
+fn all_loads() -> Vec<String> {
+    vec!["ball".into(), "frozen_arm".into(), "moving_arm".into()]
+}
+
+/// Table II: platform drops.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlatformSpec {
+    pub methods: Vec<String>,
+    pub heights_m: Vec<f64>,
+    pub seeds: usize,
+    pub repeats: usize,
+    #[serde(default)]
+    pub first_seed: u64,
+}
+
+/// The race track: return quantiles per method and for the meta controller.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RaceSpec {
+    pub methods: Vec<String>,
+    pub agents: usize,
+    pub episodes: usize,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default)]
+    pub course_seed: u64,
+}
+
+/// The IQR meta controller and the rule that fixes its threshold before the race.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetaSpec {
+    pub label: String,
+    /// Label of the risk-neutral (CVaR_1) run; its critic's IQR drives the switch.
+    pub risky: String,
+    /// Label of the risk-averse (CVaR_0.5) run.
+    pub safe: String,
+    /// Threshold = this quantile of the risky critic's IQR over `calibration_robots`
+    /// robots walking one episode on flat ground under random commands.
+    pub threshold_quantile: f64,
+    pub calibration_robots: usize,
+    #[serde(default)]
+    pub calibration_seed: u64,
+    /// Switch back below threshold x (1 - hysteresis_fraction).
+    pub hysteresis_fraction: f32,
+    pub min_safe_steps: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BootstrapSpec {
+    pub resamples: usize,
+    pub seed: u64,
+    /// Two-sided confidence level.
+    pub level: f64,
+}
+
+impl Default for BootstrapSpec {
+    fn default() -> Self {
+        BootstrapSpec {
+            resamples: 1000,
+            seed: 0,
+            level: 0.95,
+        }
+    }
+}
+
+/// The paper's published numbers, printed beside ours.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PaperNumbers {
+    pub ttf: Vec<PaperTtfRow>,
+    pub platform: Vec<PaperPlatformRow>,
+}
+
+/// One row of table I: TTF of a method with a load, in the column order
+/// flat/no push, flat/push, random/no push, random/push.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PaperTtfRow {
+    pub load: String,
+    pub method: String,
+    pub ttf: [f64; 4],
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PaperPlatformRow {
+    pub height_m: f64,
+    pub method: String,
+    pub success_pct: f64,
+}
+
+impl ExperimentSpec {
+    /// Reads and checks an experiment file; relative paths are taken from the
+    /// current directory (run it from the repository root).
+    pub fn from_file(path: &Path) -> Result<ExperimentSpec> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading experiment file {}", path.display()))?;
+        let spec: ExperimentSpec = toml::from_str(&text)
+            .with_context(|| format!("parsing experiment file {}", path.display()))?;
+        spec.validate()
+            .with_context(|| format!("experiment file {}", path.display()))?;
+        Ok(spec)
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if self.runs.is_empty() {
+            bail!("no [[run]]");
+        }
+        for (i, r) in self.runs.iter().enumerate() {
+            if self.runs[..i].iter().any(|o| o.label == r.label) {
+                bail!("two runs are labelled {:?}", r.label);
+            }
+            if self.runs[..i].iter().any(|o| o.name == r.name && o.seed == r.seed) {
+                bail!("two runs are named {:?} with seed {}", r.name, r.seed);
+            }
+            if r.iterations == 0 {
+                bail!("run {:?}: iterations must be at least 1", r.label);
+            }
+        }
+        let known = |label: &str, key: &str| -> Result<()> {
+            if self.run(label).is_none() {
+                bail!(
+                    "{key} names {label:?}, which is not the label of any [[run]] ({})",
+                    self.runs
+                        .iter()
+                        .map(|r| r.label.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+            }
+            Ok(())
+        };
+        for m in &self.ttf.methods {
+            known(m, "ttf.methods")?;
+        }
+        for m in &self.platform.methods {
+            known(m, "platform.methods")?;
+        }
+        for m in &self.race.methods {
+            known(m, "race.methods")?;
+        }
+        known(&self.meta.risky, "meta.risky")?;
+        known(&self.meta.safe, "meta.safe")?;
+        if !(0.0..=1.0).contains(&self.meta.threshold_quantile) {
+            bail!("meta.threshold_quantile must be in [0, 1]");
+        }
+        if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
+            bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");
+        }
+        if self.ttf.seeds == 0 || self.ttf.repeats == 0 {
+            bail!("ttf: seeds and repeats must be at least 1");
+        }
+        if self.platform.seeds == 0 || self.platform.repeats == 0 || self.platform.heights_m.is_empty() {
+            bail!("platform: heights, seeds and repeats must not be empty or 0");
+        }
+        if self.race.agents == 0 || self.race.episodes == 0 {
+            bail!("race: agents and episodes must be at least 1");
+        }
+        Ok(())
+    }
+
+    pub fn run(&self, label: &str) -> Option<&RunSpec> {
+        self.runs.iter().find(|r| r.label == label)
+    }
+
+    /// `<runs_dir>/<name>-s<seed>`.
+    pub fn run_dir(&self, r: &RunSpec) -> PathBuf {
+        self.runs_dir.join(format!("{}-s{}", r.name, r.seed))
+    }
+}

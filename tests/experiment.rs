@@ -1,0 +1,158 @@
+//! `rall experiment` on a tiny slice: it trains what is missing, skips what is
+//! done, and its evaluation is deterministic (the same checkpoints give the same
+//! tables to the byte).
+
+mod common;
+
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use rall::experiment::{run_experiment, run_state, ExperimentOptions, ExperimentSpec};
+use rall::learn::CriticKind;
+
+fn write_config(dir: &Path, name: &str, critic: CriticKind, eta: Option<f32>) -> String {
+    let mut c = common::tiny_config(critic);
+    c.learner.cvar_eta = eta;
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, c.to_toml()).unwrap();
+    path.display().to_string()
+}
+
+fn spec_text(dir: &Path, results: &str) -> String {
+    let base = write_config(dir, "baseline", CriticKind::Scalar, None);
+    let eta1 = write_config(dir, "eta1", CriticKind::Iqn, Some(1.0));
+    let rall = write_config(dir, "rall", CriticKind::Iqn, Some(0.5));
+    format!(
+        r#"
+name = "slice"
+runs_dir = "{runs}"
+results_dir = "{results}"
+threads = 2
+
+[[run]]
+name = "baseline"
+label = "Baseline"
+config = "{base}"
+seed = 1
+iterations = 2
+
+[[run]]
+name = "eta1"
+label = "RALL eta=1"
+config = "{eta1}"
+seed = 1
+iterations = 2
+
+[[run]]
+name = "rall"
+label = "RALL"
+config = "{rall}"
+seed = 1
+iterations = 2
+
+[tracking]
+episodes = 4
+seed = 7
+
+[ttf]
+methods = ["Baseline", "RALL"]
+seeds = 2
+repeats = 2
+loads = ["ball"]
+
+[platform]
+methods = ["Baseline", "RALL"]
+heights_m = [0.40]
+seeds = 1
+repeats = 2
+
+[race]
+methods = ["Baseline"]
+agents = 2
+episodes = 1
+
+[meta]
+label = "Meta"
+risky = "RALL eta=1"
+safe = "RALL"
+threshold_quantile = 0.9
+calibration_robots = 2
+hysteresis_fraction = 0.2
+min_safe_steps = 5
+
+[bootstrap]
+resamples = 50
+
+[[paper.ttf]]
+load = "ball"
+method = "Baseline"
+ttf = [0.539, 0.212, 0.292, 0.189]
+"#,
+        runs = dir.join("runs").display(),
+        results = dir.join(results).display(),
+    )
+}
+
+#[test]
+fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
+    let dir = tempfile::tempdir().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let file = dir.path().join("slice.toml");
+    std::fs::write(&file, spec_text(dir.path(), "results-a")).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    assert!(spec.runs.iter().all(|r| run_state(&spec, r).unwrap().progress.is_none()));
+    let all = ExperimentOptions {
+        train: true,
+        evaluate: true,
+        allow_unfinished: false,
+    };
+    run_experiment(&spec, &all, stop.clone()).unwrap();
+    for r in &spec.runs {
+        let s = run_state(&spec, r).unwrap();
+        assert!(s.done(), "{}: {:?}", r.label, s.progress);
+    }
+    let mtime = |spec: &ExperimentSpec| {
+        std::fs::metadata(spec.run_dir(&spec.runs[0]).join("latest.safetensors"))
+            .unwrap()
+            .modified()
+            .unwrap()
+    };
+    let before = mtime(&spec);
+    // the same command again: nothing to train, the same tables
+    std::fs::write(&file, spec_text(dir.path(), "results-b")).unwrap();
+    let again = ExperimentSpec::from_file(&file).unwrap();
+    run_experiment(&again, &all, stop).unwrap();
+    assert_eq!(mtime(&again), before, "a finished run is skipped, not retrained");
+    for f in ["README.md", "runs.csv", "ttf.csv", "platform.csv", "race.csv", "results.json"] {
+        let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
+        let b = std::fs::read_to_string(dir.path().join("results-b").join(f)).unwrap();
+        assert_eq!(a, b, "{f} differs between two evaluations of the same checkpoints");
+    }
+    let md = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
+    assert!(md.contains("Table I") && md.contains("(paper 0.539)"), "{md}");
+    assert!(md.contains("Meta"), "{md}");
+    let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
+    assert_eq!(ttf.lines().count(), 1 + 2 * 4, "{ttf}");
+    for line in ttf.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').skip(4).take(3).map(|x| x.parse().unwrap()).collect();
+        assert!(v[1] <= v[0] && v[0] <= v[2], "interval must hold the estimate: {line}");
+    }
+    for fig in ["ttf.svg", "platform.svg", "race.svg", "race_iqr.svg"] {
+        let svg = std::fs::read_to_string(dir.path().join("results-a/figures").join(fig)).unwrap();
+        assert!(svg.starts_with("<svg") && svg.len() > 500, "{fig}");
+    }
+}
+
+#[test]
+fn an_experiment_file_naming_an_unknown_method_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = spec_text(dir.path(), "r").replace(
+        "methods = [\"Baseline\"]\nagents",
+        "methods = [\"Baselin\"]\nagents",
+    );
+    let file = dir.path().join("bad.toml");
+    std::fs::write(&file, text).unwrap();
+    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    assert!(e.contains("race.methods") && e.contains("Baselin"), "{e}");
+}
