@@ -94,9 +94,15 @@ impl TrainConfig {
             .iter()
             .map(|g| (g, "learner.actor_inputs"))
             .chain(l.critic_inputs.iter().map(|g| (g, "learner.critic_inputs")))
-            .chain(l.encoder.iter().map(|e| (&e.input, "learner.encoder.input")));
+            .chain(
+                l.encoder
+                    .iter()
+                    .map(|e| (&e.input, "learner.encoder.input")),
+            );
         for (group, key) in reads {
-            layout.require(group, key).context("invalid [learner] value")?;
+            layout
+                .require(group, key)
+                .context("invalid [learner] value")?;
         }
         // the adaptation module's group may be absent: phase 2 adds it
         if let Some(a) = &l.adaptation {

@@ -8,7 +8,9 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-use rall::experiment::{run_experiment, run_state, ExperimentOptions, ExperimentSpec};
+use rall::experiment::{
+    run_experiment, run_state, ship_all, train_all, ExperimentOptions, ExperimentSpec,
+};
 use rall::learn::CriticKind;
 
 fn write_config(dir: &Path, name: &str, critic: CriticKind, eta: Option<f32>) -> String {
@@ -28,6 +30,7 @@ fn spec_text(dir: &Path, results: &str) -> String {
 name = "slice"
 runs_dir = "{runs}"
 results_dir = "{results}"
+shipped_dir = "{shipped}"
 threads = 2
 
 [[run]]
@@ -91,6 +94,7 @@ ttf = [0.539, 0.212, 0.292, 0.189]
 "#,
         runs = dir.join("runs").display(),
         results = dir.join(results).display(),
+        shipped = dir.join("shipped").display(),
     )
 }
 
@@ -101,7 +105,10 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     let file = dir.path().join("slice.toml");
     std::fs::write(&file, spec_text(dir.path(), "results-a")).unwrap();
     let spec = ExperimentSpec::from_file(&file).unwrap();
-    assert!(spec.runs.iter().all(|r| run_state(&spec, r).unwrap().progress.is_none()));
+    assert!(spec
+        .runs
+        .iter()
+        .all(|r| run_state(&spec, r).unwrap().progress.is_none()));
     let all = ExperimentOptions {
         train: true,
         evaluate: true,
@@ -123,25 +130,79 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     std::fs::write(&file, spec_text(dir.path(), "results-b")).unwrap();
     let again = ExperimentSpec::from_file(&file).unwrap();
     run_experiment(&again, &all, stop).unwrap();
-    assert_eq!(mtime(&again), before, "a finished run is skipped, not retrained");
-    for f in ["README.md", "runs.csv", "ttf.csv", "platform.csv", "race.csv", "results.json"] {
+    assert_eq!(
+        mtime(&again),
+        before,
+        "a finished run is skipped, not retrained"
+    );
+    for f in [
+        "README.md",
+        "runs.csv",
+        "ttf.csv",
+        "platform.csv",
+        "race.csv",
+        "results.json",
+    ] {
         let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
         let b = std::fs::read_to_string(dir.path().join("results-b").join(f)).unwrap();
-        assert_eq!(a, b, "{f} differs between two evaluations of the same checkpoints");
+        assert_eq!(
+            a, b,
+            "{f} differs between two evaluations of the same checkpoints"
+        );
     }
     let md = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
-    assert!(md.contains("Table I") && md.contains("(paper 0.539)"), "{md}");
+    assert!(
+        md.contains("Table I") && md.contains("(paper 0.539)"),
+        "{md}"
+    );
     assert!(md.contains("Meta"), "{md}");
     let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
     assert_eq!(ttf.lines().count(), 1 + 2 * 4, "{ttf}");
     for line in ttf.lines().skip(1) {
-        let v: Vec<f64> = line.split(',').skip(4).take(3).map(|x| x.parse().unwrap()).collect();
-        assert!(v[1] <= v[0] && v[0] <= v[2], "interval must hold the estimate: {line}");
+        let v: Vec<f64> = line
+            .split(',')
+            .skip(4)
+            .take(3)
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert!(
+            v[1] <= v[0] && v[0] <= v[2],
+            "interval must hold the estimate: {line}"
+        );
     }
     for fig in ["ttf.svg", "platform.svg", "race.svg", "race_iqr.svg"] {
         let svg = std::fs::read_to_string(dir.path().join("results-a/figures").join(fig)).unwrap();
         assert!(svg.starts_with("<svg") && svg.len() > 500, "{fig}");
     }
+
+    // shipped checkpoints: a clone without runs/ evaluates them to the same tables ...
+    ship_all(&again, &file).unwrap();
+    std::fs::remove_dir_all(dir.path().join("runs")).unwrap();
+    std::fs::write(&file, spec_text(dir.path(), "results-c")).unwrap();
+    let shipped = ExperimentSpec::from_file(&file).unwrap();
+    assert!(shipped
+        .runs
+        .iter()
+        .all(|r| run_state(&shipped, r).unwrap().done()));
+    let eval_only = ExperimentOptions {
+        train: false,
+        ..all
+    };
+    run_experiment(&shipped, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
+    for f in ["ttf.csv", "platform.csv", "race.csv"] {
+        let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
+        let c = std::fs::read_to_string(dir.path().join("results-c").join(f)).unwrap();
+        assert_eq!(
+            a, c,
+            "{f}: shipped checkpoints must evaluate as the originals"
+        );
+    }
+    // ... and training starts from them (here: done, so nothing is trained)
+    train_all(&shipped, Arc::new(AtomicBool::new(false))).unwrap();
+    assert!(shipped
+        .run_dir(&shipped.runs[0])
+        .join("latest.safetensors")
+        .exists());
 }
 
 #[test]

@@ -70,10 +70,15 @@ const TOKENS: &[&str] = &[
 ];
 
 fn repo_configs() -> Vec<String> {
-    ["configs/flat.toml", "configs/rall.toml", "configs/dr.toml", "configs/rma.toml"]
-        .iter()
-        .map(|p| std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(p)).unwrap())
-        .collect()
+    [
+        "configs/flat.toml",
+        "configs/rall.toml",
+        "configs/dr.toml",
+        "configs/rma.toml",
+    ]
+    .iter()
+    .map(|p| std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(p)).unwrap())
+    .collect()
 }
 
 /// Replaces `text[at..at + len]` (clamped to char boundaries) with `token`.

@@ -23,7 +23,9 @@ fn repo(p: &str) -> std::path::PathBuf {
 
 /// The DR config's env on flat ground with every group, 5 history steps.
 fn dr_env_config() -> EnvConfig {
-    let mut c = TrainConfig::from_toml_file(&repo("configs/dr.toml")).unwrap().env;
+    let mut c = TrainConfig::from_toml_file(&repo("configs/dr.toml"))
+        .unwrap()
+        .env;
     c.robot_mjcf = repo("mjcf/aliengo.xml").display().to_string();
     c.terrain.kind = TerrainKind::Flat;
     c.observation.groups = vec![ObsGroup::Policy, ObsGroup::Privileged, ObsGroup::History];
@@ -33,7 +35,14 @@ fn dr_env_config() -> EnvConfig {
 
 fn env_of(cfg: &EnvConfig, seed: u64) -> Env {
     let scene = build_scene(cfg, 1).unwrap();
-    Env::new(Arc::new(cfg.clone()), &scene.model, scene.terrain.clone(), seed, 0).unwrap()
+    Env::new(
+        Arc::new(cfg.clone()),
+        &scene.model,
+        scene.terrain.clone(),
+        seed,
+        0,
+    )
+    .unwrap()
 }
 
 #[test]
@@ -74,27 +83,45 @@ fn the_privileged_group_holds_exactly_the_parameters_of_the_episode() {
         };
         assert!(inside(d.friction.unwrap(), r.friction));
         assert!(inside(d.added_base_mass_kg, r.added_base_mass_kg));
-        assert!(d.motor_strength.iter().all(|&s| inside(s, r.motor_strength)));
+        assert!(d
+            .motor_strength
+            .iter()
+            .all(|&s| inside(s, r.motor_strength)));
         assert!(inside(d.kp_factor, r.kp_factor) && inside(d.kd_factor, r.kd_factor));
         assert!(d.com_offset_m.iter().all(|&c| inside(c, r.com_offset_m)));
         // ... and are what the robot steps with
         let robot = env.robot();
         assert_eq!(robot.motor_strength, d.motor_strength);
-        assert_eq!(robot.control.kp_nm_per_rad, cfg.control.kp_nm_per_rad * d.kp_factor);
-        assert_eq!(robot.control.kd_nm_s_per_rad, cfg.control.kd_nm_s_per_rad * d.kd_factor);
+        assert_eq!(
+            robot.control.kp_nm_per_rad,
+            cfg.control.kp_nm_per_rad * d.kp_factor
+        );
+        assert_eq!(
+            robot.control.kd_nm_s_per_rad,
+            cfg.control.kd_nm_s_per_rad * d.kd_factor
+        );
         let params = robot.params();
-        assert_eq!(params.body_mass_kg()[trunk], base_mass + d.added_base_mass_kg);
+        assert_eq!(
+            params.body_mass_kg()[trunk],
+            base_mass + d.added_base_mass_kg
+        );
         for (g, base) in params.geom_friction().iter().zip(&model_friction) {
             assert_eq!(*g, [d.friction.unwrap(), base[1], base[2]]);
         }
         for k in 0..3 {
-            assert_eq!(params.body_ipos_m()[trunk][k], base_ipos[k] + d.com_offset_m[k]);
+            assert_eq!(
+                params.body_ipos_m()[trunk][k],
+                base_ipos[k] + d.com_offset_m[k]
+            );
         }
         // the true velocity is the state's, without the policy group's noise
         let s = env.privileged_state();
         assert_eq!(s.base_lin_vel_body_mps, env.state().base_lin_vel_body_mps);
     }
-    assert!(draws.windows(2).all(|w| w[0] != w[1]), "every episode draws anew");
+    assert!(
+        draws.windows(2).all(|w| w[0] != w[1]),
+        "every episode draws anew"
+    );
 }
 
 #[test]
@@ -106,15 +133,25 @@ fn the_history_shifts_one_step_per_step_and_clears_on_reset() {
     let (mut obs, mut fin) = (vec![0.0; w], vec![0.0; w]);
     env.reset(&mut obs).unwrap();
     let check_fresh = |obs: &[f32]| {
-        assert_eq!(&obs[h0..h0 + OBS_DIM], &obs[..OBS_DIM], "newest = this step");
-        assert!(obs[h0 + OBS_DIM..].iter().all(|&v| v == 0.0), "older slots cleared");
+        assert_eq!(
+            &obs[h0..h0 + OBS_DIM],
+            &obs[..OBS_DIM],
+            "newest = this step"
+        );
+        assert!(
+            obs[h0 + OBS_DIM..].iter().all(|&v| v == 0.0),
+            "older slots cleared"
+        );
     };
     check_fresh(&obs);
     let action = vec![0.1f32; 12];
     for step in 0..8 {
         let before = obs.clone();
         let done = env.step(&action, &mut obs, &mut fin).done;
-        assert!(!done, "step {step}: the robot should not fall standing still");
+        assert!(
+            !done,
+            "step {step}: the robot should not fall standing still"
+        );
         assert_eq!(&obs[h0..h0 + OBS_DIM], &obs[..OBS_DIM]);
         // slot k now holds what slot k-1 held one step earlier
         assert_eq!(&obs[h0 + OBS_DIM..], &before[h0..w - OBS_DIM]);
@@ -150,7 +187,9 @@ fn a_student_fed_the_true_latent_acts_exactly_as_the_teacher() {
     teacher.load_state(&state).unwrap();
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
-    let obs: Vec<f32> = (0..16 * layout.width()).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let obs: Vec<f32> = (0..16 * layout.width())
+        .map(|_| rng.gen_range(-1.0..1.0))
+        .collect();
     let teacher_actions = teacher.act_mean(&obs);
     let mut student = teacher;
     student.set_latent_source(LatentSource::Adaptation);
@@ -189,8 +228,14 @@ fn every_method_config_trains_one_iteration() {
         let cfg = tiny_method(m);
         let dir = tempfile::tempdir().unwrap();
         let run = dir.path().join(m);
-        let s = train(cfg.clone(), &run, false, Arc::new(AtomicBool::new(false)), &mut ())
-            .unwrap_or_else(|e| panic!("{m}: {e:#}"));
+        let s = train(
+            cfg.clone(),
+            &run,
+            false,
+            Arc::new(AtomicBool::new(false)),
+            &mut (),
+        )
+        .unwrap_or_else(|e| panic!("{m}: {e:#}"));
         let rma = cfg.learner.adaptation.is_some();
         assert_eq!(s.iterations_done, if rma { 2 } else { 1 }, "{m}");
         let rows = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
@@ -204,7 +249,11 @@ fn every_method_config_trains_one_iteration() {
         assert_eq!(loaded.config.env.observation.groups, groups, "{m}");
         if rma {
             let adapt = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
-            assert_eq!(adapt.lines().count(), 2, "{m}: header + one phase-2 iteration");
+            assert_eq!(
+                adapt.lines().count(),
+                2,
+                "{m}: header + one phase-2 iteration"
+            );
             assert_eq!(loaded.learner.latent_source(), LatentSource::Adaptation);
         } else {
             assert_eq!(loaded.learner.latent_source(), LatentSource::Encoder);
@@ -230,7 +279,10 @@ fn checkpoints_of_every_method_round_trip_and_other_groups_are_refused() {
     let path = dir.path().join("rma.safetensors");
     let (tensors, mut meta) = load_checkpoint(&path).unwrap();
     let groups = meta["obs_groups"].clone();
-    assert!(groups.contains(&format!("privileged:{PRIVILEGED_DIM}")), "{groups}");
+    assert!(
+        groups.contains(&format!("privileged:{PRIVILEGED_DIM}")),
+        "{groups}"
+    );
     meta.insert(
         "obs_groups".into(),
         groups.replace(
@@ -247,7 +299,10 @@ fn checkpoints_of_every_method_round_trip_and_other_groups_are_refused() {
     meta.insert("obs_group.privileged".into(), "friction:31*1@0".into());
     save_checkpoint(&bad, &tensors, &meta).unwrap();
     let e = format!("{:#}", load_policy(&bad).err().unwrap());
-    assert!(e.contains("\"privileged\"") && e.contains("friction:31"), "{e}");
+    assert!(
+        e.contains("\"privileged\"") && e.contains("friction:31"),
+        "{e}"
+    );
     // a policy-only checkpoint against a config that adds groups
     let (tensors, mut meta) = load_checkpoint(&dir.path().join("baseline.safetensors")).unwrap();
     meta.insert("obs_groups".into(), "policy:48,history:240".into());
@@ -260,8 +315,58 @@ fn checkpoints_of_every_method_round_trip_and_other_groups_are_refused() {
 fn a_network_reading_a_group_the_env_does_not_write_is_refused_by_name() {
     let text = "[learner]\nactor_inputs = [\"policy\", \"privileged\"]\n";
     let e = format!("{:#}", TrainConfig::from_toml_str(text).unwrap_err());
-    assert!(e.contains("privileged") && e.contains("learner.actor_inputs"), "{e}");
+    assert!(
+        e.contains("privileged") && e.contains("learner.actor_inputs"),
+        "{e}"
+    );
     let text = "[env.observation]\ngroups = [\"privileged\"]\n";
     let e = format!("{:#}", TrainConfig::from_toml_str(text).unwrap_err());
-    assert!(e.contains("observation.groups") && e.contains("policy"), "{e}");
+    assert!(
+        e.contains("observation.groups") && e.contains("policy"),
+        "{e}"
+    );
+}
+
+#[test]
+fn rma_resumes_inside_phase_two_without_repeating_rows() {
+    let mut cfg = tiny_method("rma");
+    cfg.learner.adaptation.as_mut().unwrap().iterations = 3;
+    cfg.runner.save_interval = 1;
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("rma");
+    let stop = || Arc::new(AtomicBool::new(false));
+    let s = train(cfg.clone(), &run, false, stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 4);
+    // lose the last two checkpoints: the newest left is phase 2's first iteration
+    for it in [3, 4] {
+        std::fs::remove_file(run.join(format!("checkpoints/model_{it:06}.safetensors"))).unwrap();
+    }
+    std::fs::remove_file(run.join("latest.safetensors")).unwrap();
+    let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 4);
+    let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
+    let its: Vec<&str> = rows
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap())
+        .collect();
+    assert_eq!(its, ["2", "3", "4"], "{rows}");
+    let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    assert_eq!(
+        metrics.lines().count(),
+        2,
+        "phase 1's one row, kept: {metrics}"
+    );
+    let loaded = load_policy(&s.last_checkpoint).unwrap();
+    assert_eq!(loaded.learner.latent_source(), LatentSource::Adaptation);
+    assert!(loaded
+        .config
+        .env
+        .observation
+        .groups
+        .contains(&ObsGroup::History));
+    assert!(
+        !run.join("train.lock").exists(),
+        "the lock goes with the trainer"
+    );
 }

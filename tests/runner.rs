@@ -152,7 +152,10 @@ fn configs_in_the_repo_parse_and_bad_values_name_their_key() {
             n += 1;
         }
     }
-    assert!(n >= 11, "expected every method in terrain and flat variants, found {n} configs");
+    assert!(
+        n >= 11,
+        "expected every method in terrain and flat variants, found {n} configs"
+    );
     let err = |text: &str| format!("{:#}", TrainConfig::from_toml_str(text).unwrap_err());
     let e = err("[env.risk]\nprobability = -0.1\n");
     assert!(e.contains("risk.probability"), "{e}");

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 
-use crate::experiment::{run_experiment, run_state, ExperimentOptions, ExperimentSpec};
+use crate::experiment::{run_experiment, run_state, ship_all, ExperimentOptions, ExperimentSpec};
 
 #[derive(Debug, Args)]
 pub struct ExperimentArgs {
@@ -25,10 +25,17 @@ pub struct ExperimentArgs {
     /// Print where every run stands and exit.
     #[arg(long)]
     pub status: bool,
+    /// Copy every run's latest checkpoint, config and metrics to the file's
+    /// `shipped_dir` (to commit them) and exit.
+    #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only"])]
+    pub ship: bool,
 }
 
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let spec = ExperimentSpec::from_file(&args.file)?;
+    if args.ship {
+        return ship_all(&spec, &args.file);
+    }
     if args.status {
         for r in &spec.runs {
             let s = run_state(&spec, r)?;

@@ -330,7 +330,8 @@ fn meta_env(risky: &NamedPolicy, safe: &NamedPolicy) -> Result<EnvConfig> {
             env.observation.groups.push(*g);
         }
     }
-    let both_history = ro.groups.contains(&ObsGroup::History) && so.groups.contains(&ObsGroup::History);
+    let both_history =
+        ro.groups.contains(&ObsGroup::History) && so.groups.contains(&ObsGroup::History);
     anyhow::ensure!(
         !both_history || ro.history_steps == so.history_steps,
         "the meta controller's policies keep {} and {} history steps: they cannot share one env",

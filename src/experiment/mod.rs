@@ -9,7 +9,7 @@ pub mod results;
 pub mod spec;
 pub mod stats;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
@@ -23,7 +23,7 @@ use crate::eval::{
     GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams,
     TtfOptions,
 };
-use crate::runner::{train, Progress, RunDir};
+use crate::runner::{train, Progress, RunDir, LATEST};
 pub use results::ExperimentResults;
 pub use spec::ExperimentSpec;
 
@@ -55,8 +55,8 @@ impl RunState {
 
 /// The config of run `r` as the experiment trains it.
 pub fn run_config(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<TrainConfig> {
-    let mut cfg = TrainConfig::from_toml_file(&r.config)
-        .with_context(|| format!("run {:?}", r.label))?;
+    let mut cfg =
+        TrainConfig::from_toml_file(&r.config).with_context(|| format!("run {:?}", r.label))?;
     cfg.runner.seed = r.seed;
     cfg.runner.iterations = r.iterations;
     cfg.runner.threads = spec.threads;
@@ -68,11 +68,9 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     let cfg = run_config(spec, r)?;
     let target = r.iterations + cfg.learner.adaptation.as_ref().map_or(0, |a| a.iterations);
     let dir = spec.run_dir(r);
-    let rd = RunDir { root: dir.clone() };
-    let progress = if rd.latest().exists() || rd.root.join("checkpoints").exists() {
-        Some(rd.resume_point()?.1.progress)
-    } else {
-        None
+    let progress = match newest_checkpoint(spec, r)? {
+        Some(path) => Some(crate::runner::load_policy(&path)?.progress),
+        None => None,
     };
     Ok(RunState {
         dir,
@@ -81,10 +79,94 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     })
 }
 
+/// Files of a run that travel with its checkpoint.
+const SHIPPED_FILES: [&str; 3] = ["config.toml", "metrics.csv", "adaptation.csv"];
+
+/// Copies `from` to `to` through a temp file and a rename.
+fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
+    let tmp = to.with_extension("copy.tmp");
+    std::fs::copy(from, &tmp)
+        .with_context(|| format!("copying {} to {}", from.display(), tmp.display()))?;
+    std::fs::rename(&tmp, to).with_context(|| format!("writing {}", to.display()))
+}
+
+/// A run absent from `runs_dir` starts from its shipped checkpoint, if any.
+/// Returns whether it was restored.
+pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool> {
+    let Some(ship) = &spec.shipped_dir else {
+        return Ok(false);
+    };
+    let src = ship.join(spec.run_dir_name(r));
+    let dst = spec.run_dir(r);
+    let rd = RunDir { root: dst.clone() };
+    if rd.latest().exists() || dst.join("checkpoints").exists() || !src.join(LATEST).exists() {
+        return Ok(false);
+    }
+    std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
+    for f in SHIPPED_FILES.iter().copied().chain([LATEST]) {
+        if src.join(f).exists() {
+            copy_atomic(&src.join(f), &dst.join(f))?;
+        }
+    }
+    Ok(true)
+}
+
+/// Copies every run's newest readable checkpoint (as `latest.safetensors`) with
+/// its config and metrics into `shipped_dir`, with a README saying how it was made.
+pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
+    let ship = spec
+        .shipped_dir
+        .as_ref()
+        .context("the experiment file sets no shipped_dir")?;
+    for r in &spec.runs {
+        let rd = RunDir {
+            root: spec.run_dir(r),
+        };
+        let Ok((ckpt, loaded)) = rd.resume_point() else {
+            continue;
+        };
+        let state = run_state(spec, r)?;
+        let dst = ship.join(spec.run_dir_name(r));
+        std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
+        copy_atomic(&ckpt, &dst.join(LATEST))?;
+        for f in SHIPPED_FILES {
+            if rd.root.join(f).exists() {
+                copy_atomic(&rd.root.join(f), &dst.join(f))?;
+            }
+        }
+        let p = &loaded.progress;
+        let text = format!(
+            "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
+            label = r.label,
+            config = r.config.display(),
+            seed = r.seed,
+            it = p.iteration,
+            target = state.target,
+            unfinished = if p.iteration < state.target { " (unfinished)" } else { "" },
+            steps = p.total_env_steps as f64 / 1e6,
+            h = p.wall_s / 3600.0,
+            file = file.display(),
+            name = spec.run_dir_name(r),
+        );
+        std::fs::write(dst.join("README.md"), text)
+            .with_context(|| format!("writing {}", dst.join("README.md").display()))?;
+        eprintln!(
+            "shipped {} (iteration {}) to {}",
+            r.label,
+            p.iteration,
+            dst.display()
+        );
+    }
+    Ok(())
+}
+
 /// Trains every run that is not done, in file order; stops (resumably) on a signal.
 pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
     let n = spec.runs.len();
     for (k, r) in spec.runs.iter().enumerate() {
+        if restore_shipped(spec, r)? {
+            eprintln!("{}: starting from its shipped checkpoint", r.label);
+        }
         let state = run_state(spec, r)?;
         let head = format!("[run {}/{n}] {} ({})", k + 1, r.label, state.dir.display());
         if state.done() {
@@ -119,16 +201,28 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
     Ok(())
 }
 
+/// The newest readable checkpoint of run `r`: in its run directory, else its
+/// shipped copy; `None` when it has none.
+pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Option<PathBuf>> {
+    let rd = RunDir {
+        root: spec.run_dir(r),
+    };
+    if rd.latest().exists() || rd.root.join("checkpoints").exists() {
+        return Ok(Some(rd.resume_point()?.0));
+    }
+    Ok(spec
+        .shipped_dir
+        .as_ref()
+        .map(|s| s.join(spec.run_dir_name(r)).join(LATEST))
+        .filter(|p| p.exists()))
+}
+
 /// The latest policy of the run labelled `label`.
 fn load_run(spec: &ExperimentSpec, label: &str) -> Result<NamedPolicy> {
     let r = spec
         .run(label)
         .with_context(|| format!("no run labelled {label:?}"))?;
-    let rd = RunDir {
-        root: spec.run_dir(r),
-    };
-    let (path, _) = rd
-        .resume_point()
+    let path = newest_checkpoint(spec, r)?
         .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?;
     NamedPolicy::load(label, &path)
 }
@@ -150,7 +244,11 @@ fn parse_load(s: &str) -> Result<Load> {
 
 /// The meta controller's threshold by the experiment's rule: a quantile of the
 /// risky critic's IQR over robots walking one episode on flat ground.
-pub fn calibrate_threshold(spec: &ExperimentSpec, risky: &NamedPolicy, threads: usize) -> Result<f32> {
+pub fn calibrate_threshold(
+    spec: &ExperimentSpec,
+    risky: &NamedPolicy,
+    threads: usize,
+) -> Result<f32> {
     let m = &spec.meta;
     anyhow::ensure!(
         risky.learner.config().critic == crate::learn::CriticKind::Iqn,
@@ -176,7 +274,11 @@ pub fn calibrate_threshold(spec: &ExperimentSpec, risky: &NamedPolicy, threads: 
         obs.copy_from_slice(&venv.step(&actions).obs);
     }
     let t = stats::quantile(&iqrs, m.threshold_quantile);
-    anyhow::ensure!(t.is_finite(), "meta.risky = {:?}: its critic's IQR is {t}", m.risky);
+    anyhow::ensure!(
+        t.is_finite(),
+        "meta.risky = {:?}: its critic's IQR is {t}",
+        m.risky
+    );
     Ok(t as f32)
 }
 
@@ -198,7 +300,12 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         runs.push((r.clone(), state));
     }
     let stages = 5;
-    let stage = |k: usize, what: &str| eprintln!("[eval {k}/{stages}] {what} ({:.1} min so far)", start.elapsed().as_secs_f64() / 60.0);
+    let stage = |k: usize, what: &str| {
+        eprintln!(
+            "[eval {k}/{stages}] {what} ({:.1} min so far)",
+            start.elapsed().as_secs_f64() / 60.0
+        )
+    };
 
     stage(1, "velocity tracking of every policy");
     let mut tracking = Vec::new();
@@ -252,12 +359,16 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         load: Load::None,
         params: ScenarioParams::default(),
     };
-    let platform = evaluate_platform(&load_runs(spec, &spec.platform.methods)?, &platform_opts, |c| {
-        eprintln!(
-            "  {:.2} m {:<14} success {:.1}%",
-            c.height_m, c.policy, c.success_pct
-        )
-    })?;
+    let platform = evaluate_platform(
+        &load_runs(spec, &spec.platform.methods)?,
+        &platform_opts,
+        |c| {
+            eprintln!(
+                "  {:.2} m {:<14} success {:.1}%",
+                c.height_m, c.policy, c.success_pct
+            )
+        },
+    )?;
 
     stage(4, "meta controller threshold (rule of the experiment file)");
     let risky = load_run(spec, &spec.meta.risky)?;
@@ -290,12 +401,17 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         course_seed: spec.race.course_seed,
         params: ScenarioParams::default(),
     };
-    let race = evaluate_race(&load_runs(spec, &race_labels)?, Some(&meta), &race_opts, |r| {
-        eprintln!(
-            "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
-            r.name, r.q25, r.q50, r.q75
-        )
-    })?;
+    let race = evaluate_race(
+        &load_runs(spec, &race_labels)?,
+        Some(&meta),
+        &race_opts,
+        |r| {
+            eprintln!(
+                "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+                r.name, r.q25, r.q50, r.q75
+            )
+        },
+    )?;
     Ok(ExperimentResults::new(
         spec,
         runs,

@@ -68,9 +68,15 @@ where
         for gi in 0..groups.len() {
             if let Some(e) = value(gi, si) {
                 let x0 = gi as f64 + 0.1 + si as f64 * width;
-                rects.push(Rectangle::new([(x0, 0.0), (x0 + width * 0.9, e.value)], color.filled()));
+                rects.push(Rectangle::new(
+                    [(x0, 0.0), (x0 + width * 0.9, e.value)],
+                    color.filled(),
+                ));
                 let xc = x0 + width * 0.45;
-                whiskers.push(PathElement::new(vec![(xc, e.lo), (xc, e.hi)], BLACK.stroke_width(1)));
+                whiskers.push(PathElement::new(
+                    vec![(xc, e.lo), (xc, e.hi)],
+                    BLACK.stroke_width(1),
+                ));
             }
         }
         chart
@@ -93,7 +99,12 @@ where
 fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     let loads: Vec<String> = unique(r.ttf.iter().map(|c| c.load.clone()));
     let methods: Vec<String> = unique(r.ttf.iter().map(|c| c.method.clone()));
-    let cols = [("flat", false), ("flat", true), ("random", false), ("random", true)];
+    let cols = [
+        ("flat", false),
+        ("flat", true),
+        ("random", false),
+        ("random", true),
+    ];
     let groups: Vec<String> = cols
         .iter()
         .map(|(t, p)| format!("{t}{}", if *p { "+push" } else { "" }))
@@ -106,11 +117,22 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
             r.ttf
                 .iter()
                 .find(|c| {
-                    &c.load == load && c.method == methods[s] && c.terrain == cols[g].0 && c.push == cols[g].1
+                    &c.load == load
+                        && c.method == methods[s]
+                        && c.terrain == cols[g].0
+                        && c.push == cols[g].1
                 })
                 .map(|c| c.ttf)
         };
-        bars(area, &format!("TTF, {load}"), "time to fall", &groups, &methods, &value, 1.05)?;
+        bars(
+            area,
+            &format!("TTF, {load}"),
+            "time to fall",
+            &groups,
+            &methods,
+            &value,
+            1.05,
+        )?;
     }
     root.present().map_err(err)
 }
@@ -126,7 +148,15 @@ fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
             .find(|c| format!("{:.2} m", c.height_m) == heights[g] && c.method == methods[s])
             .map(|c| c.success_pct)
     };
-    bars(&root, "Walking off a platform", "success %", &heights, &methods, &value, 105.0)?;
+    bars(
+        &root,
+        "Walking off a platform",
+        "success %",
+        &heights,
+        &methods,
+        &value,
+        105.0,
+    )?;
     root.present().map_err(err)
 }
 
@@ -137,10 +167,16 @@ fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     let y_max = all.iter().map(|e| e.hi).fold(1e-6, f64::max) * 1.15;
     let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    let value = |g: usize, s: usize| {
-        r.race.get(s).map(|c| [c.q25, c.q50, c.q75][g])
-    };
-    bars(&root, "Race track returns", "episode return", &groups, &methods, &value, y_max)?;
+    let value = |g: usize, s: usize| r.race.get(s).map(|c| [c.q25, c.q50, c.q75][g]);
+    bars(
+        &root,
+        "Race track returns",
+        "episode return",
+        &groups,
+        &methods,
+        &value,
+        y_max,
+    )?;
     root.present().map_err(err)
 }
 

@@ -273,7 +273,11 @@ impl ExperimentResults {
         let _ = writeln!(s, "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |");
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for r in &self.runs {
-            let unfinished = if r.iterations_done < r.iterations_target { " (unfinished)" } else { "" };
+            let unfinished = if r.iterations_done < r.iterations_target {
+                " (unfinished)"
+            } else {
+                ""
+            };
             let _ = writeln!(
                 s,
                 "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {:.3} | {:.3} | {:.1}% |",
@@ -292,7 +296,10 @@ impl ExperimentResults {
             self.runs.first().map_or(0, |r| r.tracking_episodes));
 
         let _ = writeln!(s, "## Table I: Time to Fall\n");
-        let _ = writeln!(s, "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |");
+        let _ = writeln!(
+            s,
+            "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
+        );
         let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
         let loads = Self::methods_of(self.ttf.iter().map(|r| &r.load));
         let methods = Self::methods_of(self.ttf.iter().map(|r| &r.method));
@@ -305,7 +312,9 @@ impl ExperimentResults {
                         .iter()
                         .find(|r| &r.load == l && &r.method == m && r.terrain == t && r.push == p);
                     let text = cell.map_or("-".into(), |c| {
-                        let paper = c.paper.map_or(String::new(), |p| format!(" (paper {p:.3})"));
+                        let paper = c
+                            .paper
+                            .map_or(String::new(), |p| format!(" (paper {p:.3})"));
                         format!("{}{paper}", c.ttf.show(3))
                     });
                     let _ = write!(line, " {text} |");
@@ -328,7 +337,10 @@ impl ExperimentResults {
             );
         }
         let _ = writeln!(s, "\n## Race track: return quantiles\n");
-        let _ = writeln!(s, "| Method | q0.25 (worst case) | q0.5 | q0.75 (best case) | mean | falls | episodes |");
+        let _ = writeln!(
+            s,
+            "| Method | q0.25 (worst case) | q0.5 | q0.75 (best case) | mean | falls | episodes |"
+        );
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
         for r in &self.race {
             let _ = writeln!(
@@ -366,7 +378,8 @@ impl ExperimentResults {
     }
 
     fn csv_files(&self) -> Vec<(&'static str, String)> {
-        let est = |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
+        let est =
+            |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
         let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,yaw_tracking,fall_rate\n");
         for r in &self.runs {
@@ -388,17 +401,51 @@ impl ExperimentResults {
         }
         let mut ttf = String::from("method,load,terrain,push,ttf,ttf_lo,ttf_hi,robots,paper\n");
         for r in &self.ttf {
-            let _ = writeln!(ttf, "{},{},{},{},{},{},{}", csv_field(&r.method), r.load, r.terrain, r.push, est(&r.ttf, 4), r.robots, opt(r.paper));
+            let _ = writeln!(
+                ttf,
+                "{},{},{},{},{},{},{}",
+                csv_field(&r.method),
+                r.load,
+                r.terrain,
+                r.push,
+                est(&r.ttf, 4),
+                r.robots,
+                opt(r.paper)
+            );
         }
-        let mut platform = String::from("method,height_m,success_pct,success_lo,success_hi,robots,paper\n");
+        let mut platform =
+            String::from("method,height_m,success_pct,success_lo,success_hi,robots,paper\n");
         for r in &self.platform {
-            let _ = writeln!(platform, "{},{},{},{},{}", csv_field(&r.method), r.height_m, est(&r.success_pct, 2), r.robots, opt(r.paper));
+            let _ = writeln!(
+                platform,
+                "{},{},{},{},{}",
+                csv_field(&r.method),
+                r.height_m,
+                est(&r.success_pct, 2),
+                r.robots,
+                opt(r.paper)
+            );
         }
         let mut race = String::from("method,q25,q25_lo,q25_hi,q50,q50_lo,q50_hi,q75,q75_lo,q75_hi,mean_return,fall_fraction,episodes\n");
         for r in &self.race {
-            let _ = writeln!(race, "{},{},{},{},{:.4},{:.4},{}", csv_field(&r.method), est(&r.q25, 4), est(&r.q50, 4), est(&r.q75, 4), r.mean_return, r.fall_fraction, r.episodes);
+            let _ = writeln!(
+                race,
+                "{},{},{},{},{:.4},{:.4},{}",
+                csv_field(&r.method),
+                est(&r.q25, 4),
+                est(&r.q50, 4),
+                est(&r.q75, 4),
+                r.mean_return,
+                r.fall_fraction,
+                r.episodes
+            );
         }
-        vec![("runs.csv", runs), ("ttf.csv", ttf), ("platform.csv", platform), ("race.csv", race)]
+        vec![
+            ("runs.csv", runs),
+            ("ttf.csv", ttf),
+            ("platform.csv", platform),
+            ("race.csv", race),
+        ]
     }
 
     /// Writes README.md, the CSVs, results.json and figures/ into `dir`.

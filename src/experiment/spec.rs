@@ -15,6 +15,10 @@ pub struct ExperimentSpec {
     pub runs_dir: PathBuf,
     /// Tables, CSV/JSON and figures go here.
     pub results_dir: PathBuf,
+    /// Where the runs' latest checkpoints are committed (`--ship` copies them
+    /// there; a run missing from `runs_dir` starts from its shipped copy).
+    #[serde(default)]
+    pub shipped_dir: Option<PathBuf>,
     /// Worker threads for training and evaluation (0 = all cores).
     #[serde(default)]
     pub threads: usize,
@@ -182,7 +186,10 @@ impl ExperimentSpec {
             if self.runs[..i].iter().any(|o| o.label == r.label) {
                 bail!("two runs are labelled {:?}", r.label);
             }
-            if self.runs[..i].iter().any(|o| o.name == r.name && o.seed == r.seed) {
+            if self.runs[..i]
+                .iter()
+                .any(|o| o.name == r.name && o.seed == r.seed)
+            {
                 bail!("two runs are named {:?} with seed {}", r.name, r.seed);
             }
             if r.iterations == 0 {
@@ -222,7 +229,10 @@ impl ExperimentSpec {
         if self.ttf.seeds == 0 || self.ttf.repeats == 0 {
             bail!("ttf: seeds and repeats must be at least 1");
         }
-        if self.platform.seeds == 0 || self.platform.repeats == 0 || self.platform.heights_m.is_empty() {
+        if self.platform.seeds == 0
+            || self.platform.repeats == 0
+            || self.platform.heights_m.is_empty()
+        {
             bail!("platform: heights, seeds and repeats must not be empty or 0");
         }
         if self.race.agents == 0 || self.race.episodes == 0 {
@@ -235,8 +245,13 @@ impl ExperimentSpec {
         self.runs.iter().find(|r| r.label == label)
     }
 
+    /// `<name>-s<seed>`.
+    pub fn run_dir_name(&self, r: &RunSpec) -> String {
+        format!("{}-s{}", r.name, r.seed)
+    }
+
     /// `<runs_dir>/<name>-s<seed>`.
     pub fn run_dir(&self, r: &RunSpec) -> PathBuf {
-        self.runs_dir.join(format!("{}-s{}", r.name, r.seed))
+        self.runs_dir.join(self.run_dir_name(r))
     }
 }

@@ -189,7 +189,10 @@ mod tests {
         let mut cache = MlpCache::default();
         latent_loss_and_grad(&actor, &obs, &z, b, &mut g, &mut cache).unwrap();
         let off = adaptation_offset(&actor).unwrap();
-        assert!(g[..off].iter().all(|&v| v == 0.0), "only adapt.* may get gradient");
+        assert!(
+            g[..off].iter().all(|&v| v == 0.0),
+            "only adapt.* may get gradient"
+        );
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         for _ in 0..60 {
             let i = rng.gen_range(off..actor.params.len());
@@ -198,7 +201,8 @@ mod tests {
             let mut loss_at = |v: f32| {
                 actor.params.data[i] = v;
                 let mut scratch = vec![0.0; actor.params.len()];
-                let l = latent_loss_and_grad(&actor, &obs, &z, b, &mut scratch, &mut cache).unwrap();
+                let l =
+                    latent_loss_and_grad(&actor, &obs, &z, b, &mut scratch, &mut cache).unwrap();
                 l as f64
             };
             let numeric = (loss_at(old + h) - loss_at(old - h)) / (2.0 * h as f64);

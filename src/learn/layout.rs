@@ -164,14 +164,19 @@ mod tests {
         let e = relayout_rows(&x, &layout("policy:2"), &student).unwrap_err();
         assert!(format!("{e}").contains("\"history\""), "{e}");
         let e = relayout_rows(&x, &env, &layout("policy:2,history:4")).unwrap_err();
-        assert!(format!("{e}").contains("history") && format!("{e}").contains("wide"), "{e}");
+        assert!(
+            format!("{e}").contains("history") && format!("{e}").contains("wide"),
+            "{e}"
+        );
     }
 
     #[test]
     fn layouts_compare_group_by_group() {
         let a = layout("policy:48,privileged:31");
         assert!(a.check_same(&a.clone(), "x").is_ok());
-        let e = a.check_same(&layout("policy:48,privileged:30"), "x").unwrap_err();
+        let e = a
+            .check_same(&layout("policy:48,privileged:30"), "x")
+            .unwrap_err();
         assert!(format!("{e}").contains("\"privileged\""), "{e}");
         let e = a.check_same(&layout("policy:48"), "x").unwrap_err();
         assert!(format!("{e}").contains("\"privileged\""), "{e}");

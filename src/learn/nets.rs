@@ -800,7 +800,9 @@ mod tests {
             .collect::<Vec<_>>();
         assert!(!enc_params.is_empty());
         assert!(
-            enc_params.iter().any(|r| g[r.clone()].iter().any(|&v| v != 0.0)),
+            enc_params
+                .iter()
+                .any(|r| g[r.clone()].iter().any(|&v| v != 0.0)),
             "the encoder must receive gradient"
         );
         let mut ps = actor.params.clone();

@@ -103,6 +103,61 @@ impl RunDir {
     }
 }
 
+/// Held while a process trains in a run directory: `train.lock` with its pid.
+/// A lock whose process is gone (killed) is taken over.
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    pub fn acquire(root: &Path) -> Result<RunLock> {
+        use std::io::Write as _;
+        let path = root.join("train.lock");
+        for _ in 0..3 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+            {
+                Ok(mut f) => {
+                    writeln!(f, "{}", std::process::id())
+                        .with_context(|| format!("writing {}", path.display()))?;
+                    return Ok(RunLock { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let holder = std::fs::read_to_string(&path)
+                        .ok()
+                        .and_then(|t| t.trim().parse::<u32>().ok());
+                    if let Some(pid) = holder.filter(|pid| process_alive(*pid)) {
+                        anyhow::bail!(
+                            "{} is being trained by process {pid} ({} holds its pid): wait for it or stop it; remove the file only if that process is not rall",
+                            root.display(),
+                            path.display()
+                        );
+                    }
+                    // left by a process that died (kill -9): take it over
+                    let _ = std::fs::remove_file(&path);
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| format!("creating {}", path.display()));
+                }
+            }
+        }
+        anyhow::bail!("could not take {}", path.display())
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether process `pid` exists (Linux /proc).
+fn process_alive(pid: u32) -> bool {
+    Path::new(&format!("/proc/{pid}")).exists()
+}
+
 /// Called once per iteration with the row just logged (for the rerun logger, tests).
 pub trait IterationObserver {
     fn on_iteration(&mut self, _row: &IterationRow, _learner: &Learner) -> Result<()> {
@@ -136,6 +191,8 @@ pub fn train(
     };
     std::fs::create_dir_all(&dir.root)
         .with_context(|| format!("creating run directory {}", dir.root.display()))?;
+    // one trainer per run directory (another one's temp files are not ours to remove)
+    let _lock = RunLock::acquire(&dir.root)?;
     dir.remove_temp_files();
     let (mut cfg, mut learner, mut progress) = if resume {
         let (path, loaded) = dir.resume_point()?;
@@ -459,4 +516,22 @@ fn progress_bar(start: usize, end: usize) -> ProgressBar {
             .progress_chars("=> "),
     );
     bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_trainer_per_run_directory_and_dead_holders_are_taken_over() {
+        let dir = tempfile::tempdir().unwrap();
+        let lock = RunLock::acquire(dir.path()).unwrap();
+        let e = format!("{:#}", RunLock::acquire(dir.path()).err().unwrap());
+        assert!(e.contains(&std::process::id().to_string()), "{e}");
+        drop(lock);
+        assert!(!dir.path().join("train.lock").exists());
+        // a pid above any pid_max: its holder is gone
+        std::fs::write(dir.path().join("train.lock"), "4294967295\n").unwrap();
+        let _again = RunLock::acquire(dir.path()).unwrap();
+    }
 }
