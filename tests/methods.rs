@@ -67,11 +67,11 @@ fn the_privileged_group_holds_exactly_the_parameters_of_the_episode() {
         assert_eq!(p, &expected[..]);
         assert_eq!(p[0], (d.friction.unwrap() - 1.0) as f32);
         assert_eq!(p[1], (d.added_base_mass_kg * 0.2) as f32);
-        for k in 0..3 {
-            assert_eq!(p[2 + k], (d.com_offset_m[k] * 10.0) as f32);
+        for (k, c) in d.com_offset_m.iter().enumerate() {
+            assert_eq!(p[2 + k], (c * 10.0) as f32);
         }
-        for j in 0..12 {
-            assert_eq!(p[5 + j], ((d.motor_strength[j] - 1.0) * 5.0) as f32);
+        for (j, s) in d.motor_strength.iter().enumerate() {
+            assert_eq!(p[5 + j], ((s - 1.0) * 5.0) as f32);
         }
         assert_eq!(p[17], ((d.kp_factor - 1.0) * 2.0) as f32);
         assert_eq!(p[18], ((d.kd_factor - 1.0) * 2.0) as f32);
@@ -108,11 +108,9 @@ fn the_privileged_group_holds_exactly_the_parameters_of_the_episode() {
         for (g, base) in params.geom_friction().iter().zip(&model_friction) {
             assert_eq!(*g, [d.friction.unwrap(), base[1], base[2]]);
         }
-        for k in 0..3 {
-            assert_eq!(
-                params.body_ipos_m()[trunk][k],
-                base_ipos[k] + d.com_offset_m[k]
-            );
+        let ipos = params.body_ipos_m()[trunk];
+        for ((p, b), c) in ipos.iter().zip(base_ipos).zip(d.com_offset_m) {
+            assert_eq!(*p, b + c);
         }
         // the true velocity is the state's, without the policy group's noise
         let s = env.privileged_state();

@@ -236,7 +236,7 @@ impl InputSel {
     /// The whole row.
     pub fn all(width: usize) -> InputSel {
         InputSel {
-            ranges: vec![0..width],
+            ranges: std::iter::once(0..width).collect(),
             row_width: width,
         }
     }

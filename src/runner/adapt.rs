@@ -199,7 +199,7 @@ pub(super) fn adaptation_phase(
         if !episodes.is_empty() {
             episodes.clear();
         }
-        if progress.iteration % r.save_interval == 0 || progress.iteration == end {
+        if progress.iteration.is_multiple_of(r.save_interval) || progress.iteration == end {
             last = Some(save_both(dir, learner, cfg, progress)?);
         }
     }
