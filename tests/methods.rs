@@ -368,3 +368,44 @@ fn rma_resumes_inside_phase_two_without_repeating_rows() {
         "the lock goes with the trainer"
     );
 }
+
+#[test]
+fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
+    let dir = tempfile::tempdir().unwrap();
+    let stop = || Arc::new(AtomicBool::new(false));
+    let mut trained = Vec::new();
+    for m in ["rall-eta1", "rma"] {
+        let mut cfg = tiny_method(m);
+        cfg.env.terrain.kind = TerrainKind::Flat;
+        let s = train(cfg, &dir.path().join(m), false, stop(), &mut ()).unwrap();
+        trained.push(s.last_checkpoint);
+    }
+    let risky = rall::eval::NamedPolicy::load("eta1", &trained[0]).unwrap();
+    let student = rall::eval::NamedPolicy::load("student", &trained[1]).unwrap();
+    assert_eq!(student.learner.latent_source(), LatentSource::Adaptation);
+    let meta = rall::eval::MetaConfig {
+        name: "meta".into(),
+        risky: "eta1".into(),
+        safe: "student".into(),
+        // below any IQR: the student acts from the first step
+        threshold: -1e9,
+        hysteresis: 0.0,
+        min_safe_steps: 1,
+    };
+    let opts = rall::eval::RaceOptions {
+        agents: 2,
+        episodes: 1,
+        threads: 2,
+        seed: 0,
+        course_seed: 0,
+        params: rall::eval::ScenarioParams {
+            episode_length_s: Some(1.0),
+            ..Default::default()
+        },
+    };
+    let report = rall::eval::evaluate_race(&[risky, student], Some(&meta), &opts, |_| {}).unwrap();
+    let m = report.rows.iter().find(|r| r.name == "meta").unwrap();
+    let log = m.meta.as_ref().unwrap();
+    assert!(log.safe_fraction > 0.99, "the student acted: {}", log.safe_fraction);
+    assert_eq!(m.episodes, 2);
+}
