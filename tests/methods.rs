@@ -406,6 +406,10 @@ fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
     let report = rall::eval::evaluate_race(&[risky, student], Some(&meta), &opts, |_| {}).unwrap();
     let m = report.rows.iter().find(|r| r.name == "meta").unwrap();
     let log = m.meta.as_ref().unwrap();
-    assert!(log.safe_fraction > 0.99, "the student acted: {}", log.safe_fraction);
+    assert!(
+        log.safe_fraction > 0.99,
+        "the student acted: {}",
+        log.safe_fraction
+    );
     assert_eq!(m.episodes, 2);
 }

@@ -299,6 +299,22 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         }
         runs.push((r.clone(), state));
     }
+    // with --allow-unfinished, runs without any checkpoint are left out
+    let mut available = Vec::new();
+    for (r, _) in &runs {
+        if newest_checkpoint(spec, r)?.is_some() {
+            available.push(r.label.clone());
+        } else {
+            eprintln!("  {} has no checkpoint yet: left out", r.label);
+        }
+    }
+    let have = |labels: &[String]| -> Vec<String> {
+        labels
+            .iter()
+            .filter(|l| available.contains(l))
+            .cloned()
+            .collect()
+    };
     let stages = 5;
     let stage = |k: usize, what: &str| {
         eprintln!(
@@ -309,7 +325,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
 
     stage(1, "velocity tracking of every policy");
     let mut tracking = Vec::new();
-    for (r, _) in &runs {
+    for (r, _) in runs.iter().filter(|(r, _)| available.contains(&r.label)) {
         let p = load_run(spec, &r.label)?;
         let env = tracking_env(&p.env);
         let t = evaluate_tracking(
@@ -338,16 +354,25 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         pushes: vec![false, true],
         params: ScenarioParams::default(),
     };
-    let ttf = evaluate_ttf(&load_runs(spec, &spec.ttf.methods)?, &ttf_opts, |c| {
-        eprintln!(
-            "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
-            c.load.name(),
-            c.terrain,
-            c.push,
-            c.policy,
-            c.ttf
-        )
-    })?;
+    let ttf_methods = have(&spec.ttf.methods);
+    let ttf = if ttf_methods.is_empty() {
+        None
+    } else {
+        Some(evaluate_ttf(
+            &load_runs(spec, &ttf_methods)?,
+            &ttf_opts,
+            |c| {
+                eprintln!(
+                    "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
+                    c.load.name(),
+                    c.terrain,
+                    c.push,
+                    c.policy,
+                    c.ttf
+                )
+            },
+        )?)
+    };
 
     stage(3, "table II: platform drops");
     let platform_opts = PlatformOptions {
@@ -359,40 +384,56 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         load: Load::None,
         params: ScenarioParams::default(),
     };
-    let platform = evaluate_platform(
-        &load_runs(spec, &spec.platform.methods)?,
-        &platform_opts,
-        |c| {
-            eprintln!(
-                "  {:.2} m {:<14} success {:.1}%",
-                c.height_m, c.policy, c.success_pct
-            )
-        },
-    )?;
+    let platform_methods = have(&spec.platform.methods);
+    let platform = if platform_methods.is_empty() {
+        None
+    } else {
+        Some(evaluate_platform(
+            &load_runs(spec, &platform_methods)?,
+            &platform_opts,
+            |c| {
+                eprintln!(
+                    "  {:.2} m {:<14} success {:.1}%",
+                    c.height_m, c.policy, c.success_pct
+                )
+            },
+        )?)
+    };
 
     stage(4, "meta controller threshold (rule of the experiment file)");
-    let risky = load_run(spec, &spec.meta.risky)?;
-    let threshold = calibrate_threshold(spec, &risky, threads)?;
-    eprintln!(
-        "  threshold {threshold:.4} = quantile {} of {}'s IQR on flat ground",
-        spec.meta.threshold_quantile, spec.meta.risky
-    );
+    let with_meta = available.contains(&spec.meta.risky) && available.contains(&spec.meta.safe);
+    let meta = if with_meta {
+        let risky = load_run(spec, &spec.meta.risky)?;
+        let threshold = calibrate_threshold(spec, &risky, threads)?;
+        eprintln!(
+            "  threshold {threshold:.4} = quantile {} of {}'s IQR on flat ground",
+            spec.meta.threshold_quantile, spec.meta.risky
+        );
+        Some(MetaConfig {
+            name: spec.meta.label.clone(),
+            risky: spec.meta.risky.clone(),
+            safe: spec.meta.safe.clone(),
+            threshold,
+            hysteresis: threshold * spec.meta.hysteresis_fraction,
+            min_safe_steps: spec.meta.min_safe_steps,
+        })
+    } else {
+        eprintln!(
+            "  left out: {} or {} has no checkpoint",
+            spec.meta.risky, spec.meta.safe
+        );
+        None
+    };
 
     stage(5, "race track");
-    let mut race_labels = spec.race.methods.clone();
-    for l in [&spec.meta.risky, &spec.meta.safe] {
-        if !race_labels.contains(l) {
-            race_labels.push(l.clone());
+    let mut race_labels = have(&spec.race.methods);
+    if meta.is_some() {
+        for l in [&spec.meta.risky, &spec.meta.safe] {
+            if !race_labels.contains(l) {
+                race_labels.push(l.clone());
+            }
         }
     }
-    let meta = MetaConfig {
-        name: spec.meta.label.clone(),
-        risky: spec.meta.risky.clone(),
-        safe: spec.meta.safe.clone(),
-        threshold,
-        hysteresis: threshold * spec.meta.hysteresis_fraction,
-        min_safe_steps: spec.meta.min_safe_steps,
-    };
     let race_opts = RaceOptions {
         agents: spec.race.agents,
         episodes: spec.race.episodes,
@@ -401,24 +442,28 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         course_seed: spec.race.course_seed,
         params: ScenarioParams::default(),
     };
-    let race = evaluate_race(
-        &load_runs(spec, &race_labels)?,
-        Some(&meta),
-        &race_opts,
-        |r| {
-            eprintln!(
-                "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
-                r.name, r.q25, r.q50, r.q75
-            )
-        },
-    )?;
+    let race = if race_labels.is_empty() {
+        None
+    } else {
+        Some(evaluate_race(
+            &load_runs(spec, &race_labels)?,
+            meta.as_ref(),
+            &race_opts,
+            |r| {
+                eprintln!(
+                    "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+                    r.name, r.q25, r.q50, r.q75
+                )
+            },
+        )?)
+    };
     Ok(ExperimentResults::new(
         spec,
         runs,
         tracking,
         ttf,
         platform,
-        threshold,
+        meta.map(|m| m.threshold),
         race,
         start.elapsed().as_secs_f64(),
     ))

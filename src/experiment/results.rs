@@ -104,10 +104,10 @@ impl ExperimentResults {
         spec: &ExperimentSpec,
         runs: Vec<(RunSpec, RunState)>,
         tracking: Vec<(String, TrackingReport)>,
-        ttf: TtfReport,
-        platform: PlatformReport,
-        threshold: f32,
-        race: RaceReport,
+        ttf: Option<TtfReport>,
+        platform: Option<PlatformReport>,
+        threshold: Option<f32>,
+        race: Option<RaceReport>,
         eval_wall_s: f64,
     ) -> ExperimentResults {
         let b = &spec.bootstrap;
@@ -142,8 +142,8 @@ impl ExperimentResults {
             })
             .collect();
         let ttf_rows = ttf
-            .cells
             .iter()
+            .flat_map(|t| &t.cells)
             .map(|c| {
                 let steps: Vec<f64> = c.steps_per_robot.iter().map(|&s| s as f64).collect();
                 let len = c.episode_steps.max(1) as f64;
@@ -169,8 +169,8 @@ impl ExperimentResults {
             })
             .collect();
         let platform_rows = platform
-            .cells
             .iter()
+            .flat_map(|p| &p.cells)
             .map(|c| {
                 let ok: Vec<f64> = c
                     .success_per_robot
@@ -191,10 +191,10 @@ impl ExperimentResults {
                 }
             })
             .collect();
-        let per_agent = race.options.episodes.max(1);
+        let per_agent = race.as_ref().map_or(1, |r| r.options.episodes.max(1));
         let mut meta = None;
         let mut race_rows = Vec::new();
-        for r in &race.rows {
+        for r in race.iter().flat_map(|r| &r.rows) {
             // agents are the bootstrap units: each keeps its episodes together
             let agents: Vec<Vec<f64>> = r.returns.chunks(per_agent).map(|c| c.to_vec()).collect();
             let q = |q: f64| {
@@ -226,7 +226,7 @@ impl ExperimentResults {
                         100.0 * (1.0 - spec.meta.hysteresis_fraction),
                         spec.meta.min_safe_steps
                     ),
-                    threshold,
+                    threshold: threshold.unwrap_or(m.config.threshold),
                     safe_fraction: m.safe_fraction,
                     switches_per_episode: m.switches_per_episode,
                     iqr_by_x: m.iqr_by_x.clone(),
@@ -273,23 +273,30 @@ impl ExperimentResults {
         let _ = writeln!(s, "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |");
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for r in &self.runs {
-            let unfinished = if r.iterations_done < r.iterations_target {
+            let unfinished = if r.iterations_done == 0 {
+                " (not started)"
+            } else if r.iterations_done < r.iterations_target {
                 " (unfinished)"
             } else {
                 ""
             };
+            let tracked = |v: f64, pct: bool| match (r.tracking_episodes, pct) {
+                (0, _) => "-".to_string(),
+                (_, true) => format!("{:.1}%", 100.0 * v),
+                (_, false) => format!("{v:.3}"),
+            };
             let _ = writeln!(
                 s,
-                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {:.3} | {:.3} | {:.1}% |",
+                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {} | {} | {} |",
                 r.label,
                 r.iterations_done,
                 r.iterations_target,
                 r.env_steps as f64 / 1e6,
                 r.wall_clock_h,
                 r.terrain_level.map_or("-".into(), |l| format!("{l:.2}")),
-                r.lin_tracking,
-                r.yaw_tracking,
-                100.0 * r.fall_rate
+                tracked(r.lin_tracking, false),
+                tracked(r.yaw_tracking, false),
+                tracked(r.fall_rate, true)
             );
         }
         let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.\n",
