@@ -217,3 +217,26 @@ fn an_experiment_file_naming_an_unknown_method_is_refused() {
     let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
     assert!(e.contains("race.methods") && e.contains("Baselin"), "{e}");
 }
+
+#[test]
+fn unfinished_runs_are_refused_unless_allowed_and_missing_ones_are_left_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("slice.toml");
+    std::fs::write(&file, spec_text(dir.path(), "results")).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    let stop = || Arc::new(AtomicBool::new(false));
+    let eval_only = ExperimentOptions {
+        train: false,
+        evaluate: true,
+        allow_unfinished: false,
+    };
+    let e = format!("{:#}", run_experiment(&spec, &eval_only, stop()).unwrap_err());
+    assert!(e.contains("not finished") && e.contains("--allow-unfinished"), "{e}");
+    let allowed = ExperimentOptions {
+        allow_unfinished: true,
+        ..eval_only
+    };
+    run_experiment(&spec, &allowed, stop()).unwrap();
+    let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
+    assert_eq!(md.matches("(not started)").count(), 3, "{md}");
+}
