@@ -30,10 +30,15 @@ def main() -> int:
     want = np.asarray(side["reference"]["actions"], dtype=np.float32)
     tol = float(side["reference"]["tolerance_abs"])
     assert obs.shape[1] == side["observation"]["dim"], obs.shape
-    got = sess.run(["actions"], {"obs": obs})[0]
+    feeds = {"obs": obs}
+    if "history" in side["reference"]:  # an RMA student: obs and its history
+        feeds["history"] = np.asarray(side["reference"]["history"], dtype=np.float32)
+        assert feeds["history"].shape[1] == side["history"]["width"], feeds["history"].shape
+    got = sess.run(["actions"], feeds)[0]
     err = float(np.max(np.abs(got - want)))
-    rows = max(float(np.max(np.abs(sess.run(["actions"], {"obs": o[None]})[0][0] - w)))
-               for o, w in zip(obs, want))
+    rows = max(float(np.max(np.abs(
+        sess.run(["actions"], {k: v[i][None] for k, v in feeds.items()})[0][0] - want[i])))
+        for i in range(len(obs)))
     print(f"onnxruntime {ort.__version__}: {onnx_path} on {len(obs)} reference observations: "
           f"max |diff| {err:.2e} (batch), {rows:.2e} (batch 1), tolerance {tol:.0e}")
     if not (err <= tol and rows <= tol):

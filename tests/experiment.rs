@@ -230,8 +230,14 @@ fn unfinished_runs_are_refused_unless_allowed_and_missing_ones_are_left_out() {
         evaluate: true,
         allow_unfinished: false,
     };
-    let e = format!("{:#}", run_experiment(&spec, &eval_only, stop()).unwrap_err());
-    assert!(e.contains("not finished") && e.contains("--allow-unfinished"), "{e}");
+    let e = format!(
+        "{:#}",
+        run_experiment(&spec, &eval_only, stop()).unwrap_err()
+    );
+    assert!(
+        e.contains("not finished") && e.contains("--allow-unfinished"),
+        "{e}"
+    );
     let allowed = ExperimentOptions {
         allow_unfinished: true,
         ..eval_only

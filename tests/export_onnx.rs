@@ -175,3 +175,88 @@ fn bad_input_is_refused_with_the_cause() {
     assert!(format!("{err:#}").contains("junk.safetensors"), "{err:#}");
     assert!(!dir.path().join("b.onnx").exists());
 }
+
+/// Runs a two-input (obs, history) student graph in tract.
+fn run_tract_student(path: &Path, obs: &[f32], history: &[f32], hist_width: usize) -> Vec<f32> {
+    let n = obs.len() / OBS_DIM;
+    let model = tract_onnx::onnx()
+        .model_for_path(path)
+        .expect("tract reads the file")
+        .into_optimized()
+        .expect("tract optimises the graph")
+        .into_runnable()
+        .expect("runnable");
+    let o = tract_ndarray::Array2::from_shape_vec((n, OBS_DIM), obs.to_vec()).unwrap();
+    let h = tract_ndarray::Array2::from_shape_vec((n, hist_width), history.to_vec()).unwrap();
+    let out = model
+        .run(tvec!(Tensor::from(o).into(), Tensor::from(h).into()))
+        .expect("tract runs the model");
+    let view = out[0].to_plain_array_view::<f32>().expect("f32 output");
+    assert_eq!(view.shape(), &[n, ACT_DIM]);
+    view.iter().copied().collect()
+}
+
+#[test]
+fn an_rma_student_exports_with_its_history_input_and_tract_agrees() {
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut cfg =
+        rall::config::TrainConfig::from_toml_file(&root.join("configs/flat-rma.toml")).unwrap();
+    cfg.env.robot_mjcf = root.join("mjcf/aliengo.xml").display().to_string();
+    cfg.env.episode.length_s = 0.5;
+    cfg.env.observation.history_steps = 6;
+    cfg.learner.actor_hidden = vec![32, 32];
+    cfg.learner.critic_hidden = vec![32, 32];
+    cfg.learner.encoder.as_mut().unwrap().hidden = vec![16];
+    let a = cfg.learner.adaptation.as_mut().unwrap();
+    a.hidden = vec![24, 16];
+    a.iterations = 1;
+    cfg.runner.num_envs = 8;
+    cfg.runner.steps_per_env = 8;
+    cfg.runner.iterations = 1;
+    cfg.runner.threads = 2;
+    let dir = tempfile::tempdir().unwrap();
+    let s = rall::runner::train(
+        cfg,
+        &dir.path().join("rma"),
+        false,
+        Arc::new(AtomicBool::new(false)),
+        &mut (),
+    )
+    .unwrap();
+    let onnx = dir.path().join("student.onnx");
+    export(&s.last_checkpoint, &onnx, &ExportOptions::default()).unwrap();
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sidecar_path(&onnx)).unwrap()).unwrap();
+    assert_eq!(side["network"]["kind"], "rma_student");
+    assert_eq!(side["history"]["steps"], 6);
+    let width = 6 * OBS_DIM;
+    assert_eq!(side["history"]["width"], width);
+    let inputs: Vec<&str> = side["onnx"]["inputs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| i["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(inputs, ["obs", "history"]);
+    let obs = rows(&side["reference"]["observations"], OBS_DIM);
+    let hist = rows(&side["reference"]["history"], width);
+    let want = rows(&side["reference"]["actions"], ACT_DIM);
+    // the reference history starts with this step's obs (newest first)
+    for (o, h) in obs.chunks(OBS_DIM).zip(hist.chunks(width)) {
+        assert_eq!(o, &h[..OBS_DIM]);
+    }
+    let got = run_tract_student(&onnx, &obs, &hist, width);
+    let d = max_abs_diff(&got, &want);
+    assert!(
+        d <= REFERENCE_TOLERANCE as f32,
+        "tract differs from rall by {d}"
+    );
+    let one = run_tract_student(&onnx, &obs[..OBS_DIM], &hist[..width], width);
+    assert!(max_abs_diff(&one, &want[..ACT_DIM]) <= REFERENCE_TOLERANCE as f32);
+    assert!(
+        want.iter().any(|a| a.abs() > 1e-3),
+        "reference actions are all ~0"
+    );
+}

@@ -7,10 +7,10 @@
 //! messages ([`onnx`]); no protoc, no new crate (prost 0.14.4 is rerun's).
 //!
 //! Network kinds: every exportable policy is a [`PolicyNet`] variant with its own
-//! graph builder, inputs and sidecar description. Today there is one, the
-//! Gaussian actor's mean. A history-based student (RMA: adaptation module +
-//! base policy) becomes a second variant with a `history` input
-//! (`batch x H x d`) next to `obs`; see [`PolicyNet`].
+//! graph builder, inputs and sidecar description: the Gaussian actor's mean
+//! (input `obs`), and RMA's student (inputs `obs` and `history`, the adaptation
+//! module and the base policy in one graph). An RMA teacher is refused: it reads
+//! privileged values a robot cannot measure.
 
 pub mod onnx;
 
@@ -32,6 +32,8 @@ use onnx::{Dense, Dim};
 pub const SIDECAR_VERSION: u32 = 1;
 /// Name of the observation input in every exported graph.
 pub const OBS_INPUT: &str = "obs";
+/// Name of the history input of a student's graph.
+pub const HISTORY_INPUT: &str = "history";
 /// Name of the action output.
 pub const ACTION_OUTPUT: &str = "actions";
 /// Tolerance the test suite and `.ci` hold runtimes to on the reference pairs.
@@ -118,23 +120,108 @@ impl ObsNormalizer {
 
 /// An exportable policy network. One variant per network kind, each with its
 /// own graph inputs and sidecar description.
-///
-/// An RMA student adds a variant `Student { adaptation, base }`: inputs `obs`
-/// (`batch x 48`) and `history` (`batch x H x 60`, oldest first, each row the
-/// policy observation and the action of that step), graph = adaptation module
-/// (per-step embedding, 1-D convolutions) -> latent (8), concatenated with
-/// `obs` -> base policy MLP -> `actions`; the sidecar then documents the
-/// history's order, length and reset value.
 #[derive(Debug, Clone)]
 pub enum PolicyNet {
     /// The Gaussian actor's mean: `actions = MLP(obs)`, ELU between layers.
     GaussianMean { layers: Vec<Dense> },
+    /// RMA's student: `z = adaptation(history)`, `actions = base([obs, z])`.
+    Student {
+        adaptation: Vec<Dense>,
+        base: Vec<Dense>,
+        obs_dim: usize,
+        history_steps: usize,
+    },
+}
+
+/// Dense layers `{prefix}l0`, `{prefix}l1`, ... of the actor's parameters.
+fn dense_layers(learner: &Learner, prefix: &str) -> Result<Vec<Dense>> {
+    let ps = &learner.actor_critic().actor.params;
+    let find = |name: &str| ps.entries.iter().find(|e| e.name == name);
+    let mut layers: Vec<Dense> = Vec::new();
+    while let Some(w) = find(&format!("{prefix}l{}.weight", layers.len())) {
+        let i = layers.len();
+        let b = find(&format!("{prefix}l{i}.bias"))
+            .with_context(|| format!("actor.{prefix}l{i} has a weight but no bias"))?;
+        ensure!(
+            w.shape.len() == 2 && b.shape == [w.shape[1]],
+            "actor.{prefix}l{i}: weight {:?} and bias {:?} do not form a dense layer",
+            w.shape,
+            b.shape
+        );
+        if let Some(prev) = layers.last() {
+            ensure!(
+                prev.out == w.shape[0],
+                "actor.{prefix}l{} has {} outputs but actor.{prefix}l{i} takes {} inputs",
+                i - 1,
+                prev.out,
+                w.shape[0]
+            );
+        }
+        layers.push(Dense {
+            inp: w.shape[0],
+            out: w.shape[1],
+            weight: ps.data[w.offset..w.offset + w.len()].to_vec(),
+            bias: ps.data[b.offset..b.offset + b.len()].to_vec(),
+        });
+    }
+    ensure!(
+        !layers.is_empty(),
+        "the actor has no layers actor.{prefix}l0"
+    );
+    Ok(layers)
+}
+
+/// Reference forward pass of dense layers in f64, ELU between them.
+fn mlp_f64(layers: &[Dense], input: &[f64]) -> Vec<f64> {
+    let mut x = input.to_vec();
+    for (i, l) in layers.iter().enumerate() {
+        let mut y: Vec<f64> = l.bias.iter().map(|&b| b as f64).collect();
+        for (k, xv) in x.iter().enumerate() {
+            for (j, yv) in y.iter_mut().enumerate() {
+                *yv += xv * l.weight[k * l.out + j] as f64;
+            }
+        }
+        if i + 1 < layers.len() {
+            for v in &mut y {
+                if *v <= 0.0 {
+                    *v = v.exp_m1();
+                }
+            }
+        }
+        x = y;
+    }
+    x
 }
 
 impl PolicyNet {
     /// The deployable network of a learner (its actor's mean), with `norm` folded in.
     pub fn from_learner(learner: &Learner, norm: &ObsNormalizer) -> Result<PolicyNet> {
         let actor = &learner.actor_critic().actor;
+        if learner.latent_source() == crate::learn::LatentSource::Adaptation {
+            let adaptation = dense_layers(learner, "adapt.")?;
+            let base = dense_layers(learner, "")?;
+            let obs_dim = actor.direct_input().width();
+            let latent = actor.latent_dim();
+            let hist = adaptation[0].inp;
+            ensure!(
+                norm.is_identity(),
+                "a student's observation normaliser cannot be folded yet"
+            );
+            ensure!(
+                base[0].inp == obs_dim + latent
+                    && adaptation[adaptation.len() - 1].out == latent
+                    && hist % obs_dim == 0,
+                "student shapes do not fit: base takes {}, obs {obs_dim} + latent {latent}; adaptation {hist} -> {}",
+                base[0].inp,
+                adaptation[adaptation.len() - 1].out
+            );
+            return Ok(PolicyNet::Student {
+                adaptation,
+                base,
+                obs_dim,
+                history_steps: hist / obs_dim,
+            });
+        }
         let ps = &actor.params;
         let find = |name: &str| ps.entries.iter().find(|e| e.name == name);
         let mut layers = Vec::new();
@@ -182,6 +269,7 @@ impl PolicyNet {
     pub fn kind(&self) -> &'static str {
         match self {
             PolicyNet::GaussianMean { .. } => "gaussian_actor_mean",
+            PolicyNet::Student { .. } => "rma_student",
         }
     }
 
@@ -195,12 +283,30 @@ impl PolicyNet {
                     Dim::Fixed(layers[0].inp),
                 ],
             )],
+            PolicyNet::Student {
+                obs_dim,
+                history_steps,
+                ..
+            } => vec![
+                (
+                    OBS_INPUT,
+                    vec![Dim::Named(onnx::BATCH_DIM.into()), Dim::Fixed(*obs_dim)],
+                ),
+                (
+                    HISTORY_INPUT,
+                    vec![
+                        Dim::Named(onnx::BATCH_DIM.into()),
+                        Dim::Fixed(history_steps * obs_dim),
+                    ],
+                ),
+            ],
         }
     }
 
     pub fn act_dim(&self) -> usize {
         match self {
             PolicyNet::GaussianMean { layers } => layers[layers.len() - 1].out,
+            PolicyNet::Student { base, .. } => base[base.len() - 1].out,
         }
     }
 
@@ -211,15 +317,29 @@ impl PolicyNet {
             ..Default::default()
         };
         for (name, dims) in self.inputs() {
-            g.input.push(onnx::float_value_info(
-                name,
-                &dims,
-                "policy observation, see the JSON sidecar",
-            ));
+            let doc = if name == HISTORY_INPUT {
+                "the last policy observations, newest first, see the JSON sidecar"
+            } else {
+                "policy observation, see the JSON sidecar"
+            };
+            g.input.push(onnx::float_value_info(name, &dims, doc));
         }
         match self {
             PolicyNet::GaussianMean { layers } => {
                 onnx::push_mlp(&mut g, "actor.", layers, OBS_INPUT, ACTION_OUTPUT);
+            }
+            PolicyNet::Student {
+                adaptation, base, ..
+            } => {
+                onnx::push_mlp(&mut g, "actor.adapt.", adaptation, HISTORY_INPUT, "latent");
+                onnx::push_concat(
+                    &mut g,
+                    "obs_latent",
+                    &[OBS_INPUT, "latent"],
+                    1,
+                    "base_input",
+                );
+                onnx::push_mlp(&mut g, "actor.", base, "base_input", ACTION_OUTPUT);
             }
         }
         g.output.push(onnx::float_value_info(
@@ -236,6 +356,37 @@ impl PolicyNet {
     /// The checkpoint tensors this network came from, and how it computes.
     fn describe(&self) -> Value {
         match self {
+            PolicyNet::Student {
+                adaptation,
+                base,
+                obs_dim,
+                history_steps,
+            } => {
+                let tensors = |prefix: &str, layers: &[Dense]| -> Vec<Value> {
+                    layers
+                        .iter()
+                        .enumerate()
+                        .flat_map(|(i, l)| {
+                            [
+                                json!({"name": format!("actor.{prefix}l{i}.weight"), "shape": [l.inp, l.out],
+                                       "layout": "in x out, row-major (y = x W + b)"}),
+                                json!({"name": format!("actor.{prefix}l{i}.bias"), "shape": [l.out]}),
+                            ]
+                        })
+                        .collect()
+                };
+                let all_tensors = [tensors("adapt.", adaptation), tensors("", base)].concat();
+                json!({
+                    "kind": self.kind(),
+                    "formula": "z = MLP_adapt(history); actions = MLP_base([obs, z]) (obs first, then the latent)",
+                    "activation": "ELU with alpha 1 between layers of each MLP, none after their last",
+                    "history": format!("{history_steps} policy observations of {obs_dim} values, newest first: slot 0 is this step's obs, slot k the obs k steps ago; zeros for steps before the episode's first"),
+                    "latent_dim": adaptation[adaptation.len() - 1].out,
+                    "checkpoint_tensors": all_tensors,
+                    "not_exported": "actor.enc.* (the teacher's encoder of privileged information), actor.log_std, critic.*, adam.*, adapt_adam.*, lr",
+                    "onnx_ops": "Gemm (transB = 0), Elu (alpha 1), Concat (axis 1)",
+                })
+            }
             PolicyNet::GaussianMean { layers } => {
                 let tensors: Vec<Value> = layers
                     .iter()
@@ -265,9 +416,31 @@ impl PolicyNet {
         }
     }
 
-    /// Reference forward pass in f64 (what the ONNX graph computes).
+    /// Reference forward pass in f64 of one input row per graph input (in
+    /// [`Self::inputs`] order).
+    pub fn forward_inputs_f64(&self, inputs: &[&[f32]]) -> Vec<f64> {
+        let f = |x: &[f32]| x.iter().map(|&v| v as f64).collect::<Vec<f64>>();
+        match self {
+            PolicyNet::GaussianMean { .. } => self.forward_f64(inputs[0]),
+            PolicyNet::Student {
+                adaptation, base, ..
+            } => {
+                let z = mlp_f64(adaptation, &f(inputs[1]));
+                let mut x = f(inputs[0]);
+                x.extend(z);
+                mlp_f64(base, &x)
+            }
+        }
+    }
+
+    /// Reference forward pass in f64 (what the ONNX graph computes) of one row:
+    /// the graph's inputs concatenated in [`Self::inputs`] order.
     pub fn forward_f64(&self, obs: &[f32]) -> Vec<f64> {
         match self {
+            PolicyNet::Student { obs_dim, .. } => {
+                let (o, h) = obs.split_at((*obs_dim).min(obs.len()));
+                self.forward_inputs_f64(&[o, h])
+            }
             PolicyNet::GaussianMean { layers } => {
                 let mut x: Vec<f64> = obs.iter().map(|&v| v as f64).collect();
                 for (i, l) in layers.iter().enumerate() {
@@ -426,13 +599,22 @@ pub fn export_learner(
 ) -> Result<ExportReport> {
     let env = &config.env;
     let groups = env.obs_layout();
-    ensure!(
-        groups.names() == ["policy"] && config.learner.encoder.is_none(),
-        "{}: the policy reads observation groups [{}]{}; export supports policies on the `policy` group alone so far (an RMA student's history input is not exported yet)",
-        checkpoint.display(),
-        groups.names().join(", "),
-        if config.learner.encoder.is_some() { " and a latent" } else { "" }
-    );
+    let student = learner.latent_source() == crate::learn::LatentSource::Adaptation;
+    if student {
+        ensure!(
+            groups.range("history").is_some() && config.learner.actor_inputs == ["policy"],
+            "{}: an RMA student must read `policy` directly and `history` through its adaptation module",
+            checkpoint.display()
+        );
+    } else {
+        ensure!(
+            groups.names() == ["policy"] && config.learner.encoder.is_none(),
+            "{}: the policy reads observation groups [{}]{}: a robot cannot measure the privileged ones (an RMA teacher); export its student, the checkpoint after phase 2",
+            checkpoint.display(),
+            groups.names().join(", "),
+            if config.learner.encoder.is_some() { " and a latent of the privileged group" } else { "" }
+        );
+    }
     let norm = ObsNormalizer::identity(learner.obs_dim());
     let net = PolicyNet::from_learner(learner, &norm)?;
     ensure!(
@@ -447,8 +629,18 @@ pub fn export_learner(
     let c = &env.control;
     let config_hash = fnv1a64_hex(&config.to_toml());
 
-    let ref_obs = reference_pairs(learner, env, opts.reference_count, opts.seed)?;
-    let ref_act = learner.act_mean(&ref_obs);
+    let ref_rows = reference_pairs(learner, env, opts.reference_count, opts.seed)?;
+    let ref_act = learner.act_mean(&ref_rows);
+    // the graph's inputs: the policy group, and a student's history
+    let pick = |name: &str| -> Vec<f32> {
+        let mut out = Vec::new();
+        if let Some(r) = groups.range(name) {
+            crate::learn::gather_columns(&ref_rows, groups.width(), &[r], &mut out);
+        }
+        out
+    };
+    let ref_obs = pick("policy");
+    let ref_hist = pick("history");
     let rows =
         |v: &[f32], d: usize| -> Vec<Vec<f32>> { v.chunks_exact(d).map(<[f32]>::to_vec).collect() };
 
@@ -532,6 +724,25 @@ pub fn export_learner(
             "actions": rows(&ref_act, ACT_DIM),
         },
     });
+    let mut sidecar = sidecar;
+    if let PolicyNet::Student { history_steps, .. } = &net {
+        let h = *history_steps;
+        sidecar["history"] = json!({
+            "input": HISTORY_INPUT,
+            "steps": h,
+            "width": h * OBS_DIM,
+            "order": "newest first: values [48 k, 48 (k + 1)) are the obs of k policy steps ago; slot 0 is this step's obs (the same values fed as `obs`)",
+            "update": "each policy step, after building obs: history = [obs, history without its last 48 values]",
+            "reset": "all zeros at the start of an episode, before the first update",
+        });
+        sidecar["reference"]["history"] = json!(rows(&ref_hist, h * OBS_DIM));
+        if let Some(steps) = sidecar["control_loop"].as_array_mut() {
+            steps.insert(
+                2,
+                json!(format!("update history (1 x {}) as in `history` (zeros after a reset), then a = onnx(obs, history)[0]", h * OBS_DIM)),
+            );
+        }
+    }
 
     let metadata = vec![
         (
@@ -545,11 +756,12 @@ pub fn export_learner(
             crate::env::observation::layout_string(),
         ),
     ];
-    let model = onnx::model(
-        net.graph(),
-        "rall policy: obs (batch x 48) -> raw actions (batch x 12); see the JSON sidecar for the controller",
-        &metadata,
-    );
+    let doc = if student {
+        "rall policy (RMA student): obs (batch x 48) and history (batch x H*48, newest first) -> raw actions (batch x 12); see the JSON sidecar for the controller"
+    } else {
+        "rall policy: obs (batch x 48) -> raw actions (batch x 12); see the JSON sidecar for the controller"
+    };
+    let model = onnx::model(net.graph(), doc, &metadata);
     let bytes = onnx::encode(&model);
     if let Some(dir) = onnx_path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -565,7 +777,7 @@ pub fn export_learner(
         iteration: progress.iteration,
         config_hash,
         onnx_bytes: bytes.len(),
-        reference_count: ref_obs.len() / OBS_DIM,
+        reference_count: ref_rows.len() / groups.width(),
     })
 }
 

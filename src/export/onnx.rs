@@ -20,6 +20,7 @@ pub const BATCH_DIM: &str = "batch";
 pub const DATA_TYPE_FLOAT: i32 = 1;
 /// `AttributeProto.AttributeType.FLOAT`.
 const ATTR_FLOAT: i32 = 1;
+const ATTR_INT: i32 = 2;
 
 #[derive(Clone, PartialEq, Message)]
 pub struct ModelProto {
@@ -284,6 +285,18 @@ pub fn push_mlp(graph: &mut GraphProto, prefix: &str, layers: &[Dense], input: &
         graph.node.push(elu);
         x = h;
     }
+}
+
+/// Appends `output = Concat(inputs, axis)` to `graph`.
+pub fn push_concat(graph: &mut GraphProto, name: &str, inputs: &[&str], axis: i64, output: &str) {
+    let mut n = node("Concat", name, inputs, output);
+    n.attribute.push(AttributeProto {
+        name: "axis".into(),
+        i: axis,
+        r#type: ATTR_INT,
+        ..Default::default()
+    });
+    graph.node.push(n);
 }
 
 /// Wraps a graph into a model (IR 7, default-domain opset 13) with metadata.
