@@ -162,15 +162,12 @@ impl Default for RiskConfig {
 }
 
 impl RiskConfig {
-    /// The terms in a fixed order (names for logs).
-    pub fn terms(&self) -> [(&'static str, RiskTerm); 5] {
-        [
-            ("base_pitch", self.base_pitch),
-            ("base_roll", self.base_roll),
-            ("joint_velocity", self.joint_velocity),
-            ("joint_acceleration", self.joint_acceleration),
-            ("joint_torque", self.joint_torque),
-        ]
+    /// The terms in [`super::risk::RISK_TERMS`] order, with their names.
+    pub fn terms(&self) -> [(&'static str, RiskTerm); super::risk::NUM_RISK_TERMS] {
+        std::array::from_fn(|i| {
+            let def = &super::risk::RISK_TERMS[i];
+            (def.name, (def.setting)(self))
+        })
     }
 }
 

@@ -4,22 +4,101 @@ use super::config::RewardConfig;
 use super::state::RobotState;
 use crate::robot::NUM_JOINTS;
 
+/// One task reward term: its name, its weight in the config, and what it
+/// measures (unweighted). The reward is `sum_i weight_i * value_i * dt`.
+pub struct RewardTerm {
+    pub name: &'static str,
+    pub weight: fn(&RewardConfig) -> f64,
+    pub value: fn(&RewardInputs, &RewardConfig) -> f64,
+}
+
 /// Number of task reward terms.
 pub const NUM_REWARD_TERMS: usize = 11;
-/// Names of the terms in [`RewardTerms::as_array`] order.
-pub const REWARD_TERM_NAMES: [&str; NUM_REWARD_TERMS] = [
-    "lin_vel_tracking",
-    "ang_vel_tracking",
-    "lin_vel_z",
-    "ang_vel_xy",
-    "joint_acc",
-    "torques",
-    "action_magnitude",
-    "collision",
-    "action_rate",
-    "torque_rate",
-    "feet_air_time",
+
+/// The paper's table I, one entry per term.
+pub const REWARD_TERMS: [RewardTerm; NUM_REWARD_TERMS] = [
+    RewardTerm {
+        name: "lin_vel_tracking",
+        weight: |c| c.lin_vel_tracking,
+        value: lin_vel_tracking,
+    },
+    RewardTerm {
+        name: "ang_vel_tracking",
+        weight: |c| c.ang_vel_tracking,
+        value: ang_vel_tracking,
+    },
+    RewardTerm {
+        name: "lin_vel_z",
+        weight: |c| c.lin_vel_z,
+        value: |x, _| x.state.base_lin_vel_body_mps[2].powi(2),
+    },
+    RewardTerm {
+        name: "ang_vel_xy",
+        weight: |c| c.ang_vel_xy,
+        value: |x, _| sum_sq(x.state.base_ang_vel_body_rad_s[..2].iter().copied()),
+    },
+    RewardTerm {
+        name: "joint_acc",
+        weight: |c| c.joint_acc,
+        value: |x, _| sum_sq(x.state.qdd_rad_s2.iter().copied()),
+    },
+    RewardTerm {
+        name: "torques",
+        weight: |c| c.torques,
+        value: |x, _| sum_sq(x.state.torques_nm.iter().copied()),
+    },
+    RewardTerm {
+        name: "action_magnitude",
+        weight: |c| c.action_magnitude,
+        value: |x, _| sum_sq(x.action.iter().map(|&a| a as f64)),
+    },
+    RewardTerm {
+        name: "collision",
+        weight: |c| c.collision,
+        value: |x, _| x.state.penalised_contacts as f64,
+    },
+    RewardTerm {
+        name: "action_rate",
+        weight: |c| c.action_rate,
+        value: |x, _| {
+            sum_sq(
+                x.action
+                    .iter()
+                    .zip(x.previous_action)
+                    .map(|(&a, &b)| (a - b) as f64),
+            )
+        },
+    },
+    RewardTerm {
+        name: "torque_rate",
+        weight: |c| c.torque_rate,
+        value: |x, _| {
+            sum_sq(
+                x.state
+                    .torques_nm
+                    .iter()
+                    .zip(x.previous_torques_nm)
+                    .map(|(a, b)| a - b),
+            )
+        },
+    },
+    RewardTerm {
+        name: "feet_air_time",
+        weight: |c| c.feet_air_time,
+        value: feet_air_time,
+    },
 ];
+
+/// Names of the terms in [`REWARD_TERMS`] order.
+pub const REWARD_TERM_NAMES: [&str; NUM_REWARD_TERMS] = {
+    let mut names = [""; NUM_REWARD_TERMS];
+    let mut i = 0;
+    while i < NUM_REWARD_TERMS {
+        names[i] = REWARD_TERMS[i].name;
+        i += 1;
+    }
+    names
+};
 
 /// Each term already multiplied by its weight and the policy dt.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -51,60 +130,41 @@ fn sum_sq(it: impl Iterator<Item = f64>) -> f64 {
     it.map(|v| v * v).sum()
 }
 
-/// Unweighted terms, in [`REWARD_TERM_NAMES`] order.
-pub fn raw_terms(x: &RewardInputs, cfg: &RewardConfig) -> [f64; NUM_REWARD_TERMS] {
-    let s = x.state;
-    let v = s.base_lin_vel_body_mps;
-    let w = s.base_ang_vel_body_rad_s;
-    let lin_err = (x.command[0] - v[0]).powi(2) + (x.command[1] - v[1]).powi(2);
-    let yaw_err = (x.command[2] - w[2]).powi(2);
+/// exp(-|v_cmd,xy - v_xy|^2 / sigma)
+fn lin_vel_tracking(x: &RewardInputs, cfg: &RewardConfig) -> f64 {
+    let v = x.state.base_lin_vel_body_mps;
+    let err = (x.command[0] - v[0]).powi(2) + (x.command[1] - v[1]).powi(2);
+    (-err / cfg.tracking_sigma).exp()
+}
+
+/// exp(-(w_cmd,yaw - w_yaw)^2 / sigma)
+fn ang_vel_tracking(x: &RewardInputs, cfg: &RewardConfig) -> f64 {
+    let err = (x.command[2] - x.state.base_ang_vel_body_rad_s[2]).powi(2);
+    (-err / cfg.tracking_sigma).exp()
+}
+
+/// sum over feet touching down of (air time - target), only while commanded to move.
+fn feet_air_time(x: &RewardInputs, cfg: &RewardConfig) -> f64 {
     let moving = (x.command[0].powi(2) + x.command[1].powi(2)).sqrt() > 0.1;
-    let air: f64 = x
-        .touchdown_air_time_s
+    if !moving {
+        return 0.0;
+    }
+    x.touchdown_air_time_s
         .iter()
         .filter(|&&t| t > 0.0)
         .map(|&t| t - cfg.feet_air_time_target_s)
-        .sum();
-    [
-        (-lin_err / cfg.tracking_sigma).exp(),
-        (-yaw_err / cfg.tracking_sigma).exp(),
-        v[2] * v[2],
-        w[0] * w[0] + w[1] * w[1],
-        sum_sq(s.qdd_rad_s2.iter().copied()),
-        sum_sq(s.torques_nm.iter().copied()),
-        sum_sq(x.action.iter().map(|&a| a as f64)),
-        s.penalised_contacts as f64,
-        sum_sq(
-            x.action
-                .iter()
-                .zip(x.previous_action)
-                .map(|(&a, &b)| (a - b) as f64),
-        ),
-        sum_sq(
-            s.torques_nm
-                .iter()
-                .zip(x.previous_torques_nm)
-                .map(|(a, b)| a - b),
-        ),
-        if moving { air } else { 0.0 },
-    ]
+        .sum()
+}
+
+/// Unweighted terms, in [`REWARD_TERM_NAMES`] order.
+pub fn raw_terms(x: &RewardInputs, cfg: &RewardConfig) -> [f64; NUM_REWARD_TERMS] {
+    std::array::from_fn(|i| (REWARD_TERMS[i].value)(x, cfg))
 }
 
 /// The weighted, dt-scaled terms.
 pub fn reward_terms(x: &RewardInputs, cfg: &RewardConfig, policy_dt_s: f64) -> RewardTerms {
-    let raw = raw_terms(x, cfg);
-    let weights = [
-        cfg.lin_vel_tracking,
-        cfg.ang_vel_tracking,
-        cfg.lin_vel_z,
-        cfg.ang_vel_xy,
-        cfg.joint_acc,
-        cfg.torques,
-        cfg.action_magnitude,
-        cfg.collision,
-        cfg.action_rate,
-        cfg.torque_rate,
-        cfg.feet_air_time,
-    ];
-    RewardTerms(std::array::from_fn(|i| raw[i] * weights[i] * policy_dt_s))
+    RewardTerms(std::array::from_fn(|i| {
+        let t = &REWARD_TERMS[i];
+        (t.value)(x, cfg) * (t.weight)(cfg) * policy_dt_s
+    }))
 }

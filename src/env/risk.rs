@@ -4,28 +4,65 @@
 
 use rand::Rng;
 
-use super::config::RiskConfig;
+use super::config::{RiskConfig, RiskTerm};
 use super::state::RobotState;
 
+/// One risk term: its name, what it measures, and its threshold and weight in the config.
+pub struct RiskTermDef {
+    pub name: &'static str,
+    pub measure: fn(&RobotState) -> f64,
+    pub setting: fn(&RiskConfig) -> RiskTerm,
+}
+
 pub const NUM_RISK_TERMS: usize = 5;
-pub const RISK_TERM_NAMES: [&str; NUM_RISK_TERMS] = [
-    "base_pitch",
-    "base_roll",
-    "joint_velocity",
-    "joint_acceleration",
-    "joint_torque",
+
+/// The paper's table II, one entry per term.
+pub const RISK_TERMS: [RiskTermDef; NUM_RISK_TERMS] = [
+    RiskTermDef {
+        name: "base_pitch",
+        measure: |s| s.pitch_rad.abs(),
+        setting: |c| c.base_pitch,
+    },
+    RiskTermDef {
+        name: "base_roll",
+        measure: |s| s.roll_rad.abs(),
+        setting: |c| c.base_roll,
+    },
+    RiskTermDef {
+        name: "joint_velocity",
+        measure: |s| max_abs(&s.qd_rad_s),
+        setting: |c| c.joint_velocity,
+    },
+    RiskTermDef {
+        name: "joint_acceleration",
+        measure: |s| max_abs(&s.qdd_rad_s2),
+        setting: |c| c.joint_acceleration,
+    },
+    RiskTermDef {
+        name: "joint_torque",
+        measure: |s| max_abs(&s.torques_nm),
+        setting: |c| c.joint_torque,
+    },
 ];
 
-/// The measured quantity of each risk term, in [`RISK_TERM_NAMES`] order.
+/// Names in [`RISK_TERMS`] order.
+pub const RISK_TERM_NAMES: [&str; NUM_RISK_TERMS] = {
+    let mut names = [""; NUM_RISK_TERMS];
+    let mut i = 0;
+    while i < NUM_RISK_TERMS {
+        names[i] = RISK_TERMS[i].name;
+        i += 1;
+    }
+    names
+};
+
+fn max_abs(xs: &[f64]) -> f64 {
+    xs.iter().fold(0.0f64, |m, v| m.max(v.abs()))
+}
+
+/// The measured quantity of each risk term, in [`RISK_TERMS`] order.
 pub fn risk_measures(s: &RobotState) -> [f64; NUM_RISK_TERMS] {
-    let max_abs = |xs: &[f64]| xs.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    [
-        s.pitch_rad.abs(),
-        s.roll_rad.abs(),
-        max_abs(&s.qd_rad_s),
-        max_abs(&s.qdd_rad_s2),
-        max_abs(&s.torques_nm),
-    ]
+    std::array::from_fn(|i| (RISK_TERMS[i].measure)(s))
 }
 
 /// What the risk terms did in one step.
@@ -41,7 +78,8 @@ pub struct RiskOutcome {
 pub fn evaluate_risk<R: Rng>(s: &RobotState, cfg: &RiskConfig, rng: &mut R) -> RiskOutcome {
     let measures = risk_measures(s);
     let mut out = RiskOutcome::default();
-    for (i, (_, term)) in cfg.terms().iter().enumerate() {
+    for (i, def) in RISK_TERMS.iter().enumerate() {
+        let term = (def.setting)(cfg);
         if measures[i] > term.threshold {
             out.exceeded[i] = true;
             // Draw only when exceeded: the stream of draws is the same whatever p is.

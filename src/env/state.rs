@@ -1,6 +1,8 @@
 //! A plain snapshot of the robot, computed once per policy step: everything the
 //! observation, the reward and the risk terms read. No MuJoCo types.
 
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+
 use crate::robot::NUM_JOINTS;
 
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -29,33 +31,30 @@ pub struct RobotState {
     pub trunk_on_ground: bool,
 }
 
+/// MuJoCo's (w, x, y, z) quaternion as nalgebra's unit quaternion (MuJoCo keeps
+/// it normalised; it is not renormalised here).
+#[inline]
+pub fn unit_quat(q: [f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::new_unchecked(Quaternion::new(q[0], q[1], q[2], q[3]))
+}
+
 /// v expressed in the frame rotated by unit quaternion q (w, x, y, z): R(q)^T v.
 #[inline]
 pub fn rotate_inverse(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
-    let [w, x, y, z] = q;
-    let u = [x, y, z];
-    let a = 2.0 * w * w - 1.0;
-    let cross = [
-        u[1] * v[2] - u[2] * v[1],
-        u[2] * v[0] - u[0] * v[2],
-        u[0] * v[1] - u[1] * v[0],
-    ];
-    let dot = u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
-    std::array::from_fn(|i| v[i] * a - cross[i] * w * 2.0 + u[i] * dot * 2.0)
+    unit_quat(q)
+        .inverse_transform_vector(&Vector3::from(v))
+        .into()
 }
 
 /// v rotated by unit quaternion q (w, x, y, z): R(q) v.
 #[inline]
 pub fn rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
-    rotate_inverse([q[0], -q[1], -q[2], -q[3]], v)
+    unit_quat(q).transform_vector(&Vector3::from(v)).into()
 }
 
 /// (roll, pitch, yaw) in rad of unit quaternion q (w, x, y, z), ZYX convention.
 #[inline]
 pub fn roll_pitch_yaw(q: [f64; 4]) -> [f64; 3] {
-    let [w, x, y, z] = q;
-    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
-    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
-    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    let (roll, pitch, yaw) = unit_quat(q).euler_angles();
     [roll, pitch, yaw]
 }

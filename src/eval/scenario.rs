@@ -31,6 +31,7 @@ use crate::env::terrain::TerrainKind;
 use crate::env::{Env, EnvConfig, VecEnv};
 use crate::robot::{Part, RobotLayout};
 use crate::sim::{Data, JointKind, Model, ObjKind};
+use nalgebra::Quaternion;
 
 /// What the robot carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -588,13 +589,10 @@ pub fn build_named_scenario(name: &str, base: &EnvConfig, seed: u64) -> Result<S
     )
 }
 
+/// Hamilton product of (w, x, y, z) quaternions.
 fn quat_mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
-    [
-        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
-    ]
+    let q = Quaternion::new(a[0], a[1], a[2], a[3]) * Quaternion::new(b[0], b[1], b[2], b[3]);
+    [q.w, q.i, q.j, q.k]
 }
 
 /// The scene keyframe: the robot's key moved to `spawn`, free payload bodies at

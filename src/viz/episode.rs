@@ -431,8 +431,8 @@ impl EpisodeLogger {
             .extend((0..4).map(|i| i as f64 + 0.8 * s.foot_contact[i] as u8 as f64));
         // Command and measured planar velocity as world-frame arrows above the trunk.
         let yaw = roll_pitch_yaw(robot.base_quat_wxyz())[2];
-        let (sy, cy) = yaw.sin_cos();
-        let cmd_world = [cy * cmd[0] - sy * cmd[1], sy * cmd[0] + cy * cmd[1], 0.0];
+        let heading = nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), yaw);
+        let cmd_world: [f64; 3] = (heading * nalgebra::Vector3::new(cmd[0], cmd[1], 0.0)).into();
         let v = base_vel_world(robot);
         let origin = [base[0] as f32, base[1] as f32, (base[2] + 0.15) as f32];
         c.arrows_origin.extend([origin, origin]);
