@@ -25,9 +25,10 @@ fn rows(v: &serde_json::Value, width: usize) -> Vec<f32> {
     out
 }
 
-/// Runs the ONNX file in tract on `obs` (`n x OBS_DIM`), batch dimension left symbolic.
-fn run_tract(path: &Path, obs: &[f32]) -> Vec<f32> {
-    let n = obs.len() / OBS_DIM;
+/// Runs the ONNX file in tract on its inputs (each `n x width`, in graph order),
+/// batch dimension left symbolic.
+fn run_tract_inputs(path: &Path, inputs: &[(&[f32], usize)]) -> Vec<f32> {
+    let n = inputs[0].0.len() / inputs[0].1;
     let model = tract_onnx::onnx()
         .model_for_path(path)
         .expect("tract reads the file")
@@ -35,13 +36,22 @@ fn run_tract(path: &Path, obs: &[f32]) -> Vec<f32> {
         .expect("tract optimises the graph")
         .into_runnable()
         .expect("runnable");
-    let input = tract_ndarray::Array2::from_shape_vec((n, OBS_DIM), obs.to_vec()).unwrap();
-    let out = model
-        .run(tvec!(Tensor::from(input).into()))
-        .expect("tract runs the model");
+    let values: TVec<TValue> = inputs
+        .iter()
+        .map(|(rows, width)| {
+            let a = tract_ndarray::Array2::from_shape_vec((n, *width), rows.to_vec()).unwrap();
+            Tensor::from(a).into()
+        })
+        .collect();
+    let out = model.run(values).expect("tract runs the model");
     let view = out[0].to_plain_array_view::<f32>().expect("f32 output");
     assert_eq!(view.shape(), &[n, ACT_DIM]);
     view.iter().copied().collect()
+}
+
+/// Runs the ONNX file in tract on `obs` (`n x OBS_DIM`).
+fn run_tract(path: &Path, obs: &[f32]) -> Vec<f32> {
+    run_tract_inputs(path, &[(obs, OBS_DIM)])
 }
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
@@ -178,22 +188,7 @@ fn bad_input_is_refused_with_the_cause() {
 
 /// Runs a two-input (obs, history) student graph in tract.
 fn run_tract_student(path: &Path, obs: &[f32], history: &[f32], hist_width: usize) -> Vec<f32> {
-    let n = obs.len() / OBS_DIM;
-    let model = tract_onnx::onnx()
-        .model_for_path(path)
-        .expect("tract reads the file")
-        .into_optimized()
-        .expect("tract optimises the graph")
-        .into_runnable()
-        .expect("runnable");
-    let o = tract_ndarray::Array2::from_shape_vec((n, OBS_DIM), obs.to_vec()).unwrap();
-    let h = tract_ndarray::Array2::from_shape_vec((n, hist_width), history.to_vec()).unwrap();
-    let out = model
-        .run(tvec!(Tensor::from(o).into(), Tensor::from(h).into()))
-        .expect("tract runs the model");
-    let view = out[0].to_plain_array_view::<f32>().expect("f32 output");
-    assert_eq!(view.shape(), &[n, ACT_DIM]);
-    view.iter().copied().collect()
+    run_tract_inputs(path, &[(obs, OBS_DIM), (history, hist_width)])
 }
 
 #[test]

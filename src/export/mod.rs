@@ -222,39 +222,7 @@ impl PolicyNet {
                 history_steps: hist / obs_dim,
             });
         }
-        let ps = &actor.params;
-        let find = |name: &str| ps.entries.iter().find(|e| e.name == name);
-        let mut layers = Vec::new();
-        while let Some(w) = find(&format!("l{}.weight", layers.len())) {
-            let i = layers.len();
-            let b = find(&format!("l{i}.bias"))
-                .with_context(|| format!("actor layer {i} has a weight but no bias"))?;
-            ensure!(
-                w.shape.len() == 2 && b.shape == [w.shape[1]],
-                "actor.l{i}: weight {:?} and bias {:?} do not form a dense layer",
-                w.shape,
-                b.shape
-            );
-            layers.push(Dense {
-                inp: w.shape[0],
-                out: w.shape[1],
-                weight: ps.data[w.offset..w.offset + w.len()].to_vec(),
-                bias: ps.data[b.offset..b.offset + b.len()].to_vec(),
-            });
-        }
-        ensure!(
-            !layers.is_empty(),
-            "the actor has no layers (actor.l0.weight)"
-        );
-        for (i, pair) in layers.windows(2).enumerate() {
-            ensure!(
-                pair[0].out == pair[1].inp,
-                "actor.l{i} has {} outputs but actor.l{} takes {} inputs",
-                pair[0].out,
-                i + 1,
-                pair[1].inp
-            );
-        }
+        let mut layers = dense_layers(learner, "")?;
         let (inp, out) = (layers[0].inp, layers[layers.len() - 1].out);
         ensure!(
             inp == actor.obs_dim && out == actor.act_dim,
@@ -442,24 +410,7 @@ impl PolicyNet {
                 self.forward_inputs_f64(&[o, h])
             }
             PolicyNet::GaussianMean { layers } => {
-                let mut x: Vec<f64> = obs.iter().map(|&v| v as f64).collect();
-                for (i, l) in layers.iter().enumerate() {
-                    let mut y: Vec<f64> = l.bias.iter().map(|&b| b as f64).collect();
-                    for (k, xv) in x.iter().enumerate() {
-                        for (j, yv) in y.iter_mut().enumerate() {
-                            *yv += xv * l.weight[k * l.out + j] as f64;
-                        }
-                    }
-                    if i + 1 < layers.len() {
-                        for v in &mut y {
-                            if *v <= 0.0 {
-                                *v = v.exp_m1();
-                            }
-                        }
-                    }
-                    x = y;
-                }
-                x
+                mlp_f64(layers, &obs.iter().map(|&v| v as f64).collect::<Vec<_>>())
             }
         }
     }
