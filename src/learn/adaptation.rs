@@ -88,9 +88,17 @@ pub fn latent_loss_and_grad(
     Ok(loss)
 }
 
+/// What one regression did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Regression {
+    /// MSE of z_hat against z over all rows, before the first step.
+    pub mse_before: f32,
+    /// Mean mini-batch MSE, each taken before its step.
+    pub mean_minibatch_mse: f32,
+}
+
 /// `epochs` passes of mini-batch Adam on `rows` observation rows (each holds the
-/// encoder's and the adaptation module's input groups); returns the mean
-/// mini-batch MSE before each step.
+/// encoder's and the adaptation module's input groups).
 pub fn regress(
     actor: &mut GaussianActor,
     opt: &mut AdaptationOptimizer,
@@ -98,16 +106,18 @@ pub fn regress(
     obs: &[f32],
     rows: usize,
     rng: &mut impl Rng,
-) -> Result<f32> {
+) -> Result<Regression> {
     let offset = adaptation_offset(actor).ok_or_else(|| {
         anyhow::anyhow!("the actor has no adaptation module (learner.adaptation)")
     })?;
     ensure!(rows > 0, "no rows to regress on");
     let width = actor.obs_dim;
     // targets: the frozen encoder's z for every row, once
-    let z = {
-        let (enc, _) = modules(actor)?;
-        actor.latent_of(enc, obs, rows)
+    let (z, mse_before) = {
+        let (enc, adapt) = modules(actor)?;
+        let z = actor.latent_of(enc, obs, rows);
+        let before = mse(&actor.latent_of(adapt, obs, rows), &z);
+        (z, before)
     };
     let lw = actor.latent_dim();
     let mut idx: Vec<usize> = (0..rows).collect();
@@ -141,7 +151,10 @@ pub fn regress(
             );
         }
     }
-    Ok((loss_sum / count.max(1) as f64) as f32)
+    Ok(Regression {
+        mse_before,
+        mean_minibatch_mse: (loss_sum / count.max(1) as f64) as f32,
+    })
 }
 
 #[cfg(test)]

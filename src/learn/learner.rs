@@ -3,7 +3,7 @@
 
 use super::actor_critic::{ActorCritic, Critic};
 use super::adam::AdamState;
-use super::adaptation::{self, adaptation_offset, AdaptationOptimizer};
+use super::adaptation::{self, adaptation_offset, AdaptationOptimizer, Regression};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
 use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
@@ -408,8 +408,8 @@ impl Learner {
     }
 
     /// RMA phase 2: regresses the adaptation module's z on the encoder's over
-    /// `obs` (`rows x obs_dim`); returns the mean mini-batch MSE.
-    pub fn regress_latent(&mut self, obs: &[f32], rows: usize) -> Result<f32> {
+    /// `obs` (`rows x obs_dim`).
+    pub fn regress_latent(&mut self, obs: &[f32], rows: usize) -> Result<Regression> {
         let (Some(cfg), Some(opt)) = (&self.cfg.adaptation, &mut self.adapt_opt) else {
             bail!("this learner has no adaptation module (learner.adaptation)");
         };

@@ -145,8 +145,8 @@ pub(super) fn adaptation_phase(
         }
         let collect_s = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
-        let before = learner.latent_mse(&buffer, rows)?;
-        let mse = learner.regress_latent(&buffer, rows)?;
+        let reg = learner.regress_latent(&buffer, rows)?;
+        let (before, mse) = (reg.mse_before, reg.mean_minibatch_mse);
         let learn_s = t1.elapsed().as_secs_f64();
         anyhow::ensure!(
             mse.is_finite(),
