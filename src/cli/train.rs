@@ -9,7 +9,7 @@ use clap::Args;
 
 use crate::config::TrainConfig;
 use crate::learn::CriticKind;
-use crate::runner::{train, RunDir, LATEST};
+use crate::runner::{train_in, RunDir, World, LATEST};
 use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
 
 #[derive(Debug, Args)]
@@ -70,8 +70,23 @@ fn parse_critic(s: &str) -> Result<CriticKind, String> {
     }
 }
 
+/// `rall train`, alone or as one rank under `mpirun`/`srun` (an error on any
+/// rank ends the whole job: the other ranks would wait for it forever).
 pub fn run(args: &TrainArgs) -> Result<()> {
+    let world = World::from_env()?;
+    match run_in(&world, args) {
+        Err(e) if world.size() > 1 => {
+            eprintln!("error on rank {} of {}: {e:#}", world.rank(), world.size());
+            world.abort(1)
+        }
+        other => other,
+    }
+}
+
+fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
     let (cfg, run_dir, resume) = match (&args.resume, &args.run_dir) {
+        // rank 0 reads the run's checkpoint and broadcasts it (`train_in`)
+        (Some(dir), _) if !world.is_root() => (TrainConfig::default(), dir.clone(), true),
         (Some(dir), _) => {
             // what the run was started with; only runner settings may change
             let (_, loaded) = RunDir { root: dir.clone() }
@@ -94,7 +109,8 @@ pub fn run(args: &TrainArgs) -> Result<()> {
             let run_dir = run_dir
                 .clone()
                 .unwrap_or_else(|| default_run_dir(&config, &cfg));
-            if run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists() {
+            let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
+            if taken && world.is_root() {
                 bail!(
                     "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
                     run_dir.display(),
@@ -110,8 +126,8 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         args.rerun_spawn,
         args.rerun_connect.as_deref(),
     );
-    let summary = match target {
-        None => train(cfg, &run_dir, resume, stop, &mut ())?,
+    let summary = match target.filter(|_| world.is_root()) {
+        None => train_in(world, cfg, &run_dir, resume, stop, &mut ())?,
         Some(target) => {
             // A resumed run evaluates in its own stored env.
             let stored = run_dir.join("config.toml");
@@ -126,7 +142,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
             };
             let mut recorder =
                 TrainRecorder::open(&target, &run_dir.display().to_string(), &run_cfg, opts)?;
-            let summary = train(cfg, &run_dir, resume, stop, &mut recorder)?;
+            let summary = train_in(world, cfg, &run_dir, resume, stop, &mut recorder)?;
             recorder.finish()?;
             if let RerunTarget::Save(path) = &target {
                 println!(
@@ -138,6 +154,9 @@ pub fn run(args: &TrainArgs) -> Result<()> {
             summary
         }
     };
+    if !world.is_root() {
+        return Ok(());
+    }
     println!(
         "{} at iteration {}; checkpoint {}",
         if summary.interrupted {

@@ -62,7 +62,15 @@ pub fn save_checkpoint(
 pub fn load_checkpoint(path: &Path) -> Result<(Vec<NamedTensor>, HashMap<String, String>)> {
     let bytes =
         std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
-    let st = SafeTensors::deserialize(&bytes)
+    parse_checkpoint(&bytes, path)
+}
+
+/// [`load_checkpoint`] of a file's bytes already in memory (`path` names it in errors).
+pub fn parse_checkpoint(
+    bytes: &[u8],
+    path: &Path,
+) -> Result<(Vec<NamedTensor>, HashMap<String, String>)> {
+    let st = SafeTensors::deserialize(bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
         .with_context(|| {
             format!(
@@ -70,7 +78,7 @@ pub fn load_checkpoint(path: &Path) -> Result<(Vec<NamedTensor>, HashMap<String,
                 path.display()
             )
         })?;
-    let (_, meta) = SafeTensors::read_metadata(&bytes)
+    let (_, meta) = SafeTensors::read_metadata(bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
         .with_context(|| format!("checkpoint {}: bad header", path.display()))?;
     let metadata = meta.metadata().clone().unwrap_or_default();

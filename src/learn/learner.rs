@@ -4,6 +4,7 @@
 use super::actor_critic::{ActorCritic, Critic};
 use super::adam::AdamState;
 use super::adaptation::{self, adaptation_offset, AdaptationOptimizer, Regression};
+use super::collective::{Collective, SingleProcess};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
 use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
@@ -423,6 +424,12 @@ impl Learner {
 
     /// One PPO update (epochs x mini-batches) on a full rollout.
     pub fn update(&mut self, rollout: &Rollout) -> Result<UpdateStats> {
+        self.update_with(rollout, &SingleProcess)
+    }
+
+    /// [`Self::update`] as one rank of a data-parallel run: every rank calls it
+    /// on its own rollout (same shape) and takes the same step (see `ppo`).
+    pub fn update_with(&mut self, rollout: &Rollout, comm: &dyn Collective) -> Result<UpdateStats> {
         let ccfg = CriticLossConfig {
             num_taus: self.cfg.num_taus,
             num_target_taus: self.cfg.num_target_taus,
@@ -437,6 +444,7 @@ impl Learner {
             &self.cfg.ppo,
             &ccfg,
             &mut self.rng,
+            comm,
         )
     }
 

@@ -9,6 +9,7 @@
 //! - [`ppo`]: the update.
 //! - [`learner`]: the [`Learner`] facade and [`LearnerConfig`].
 //! - [`checkpoint`]: atomic safetensors files with metadata.
+//! - [`collective`]: sums across the ranks of a data-parallel run.
 //!
 //! Cost at the defaults (obs 48, act 12, 256 envs x 24 steps, 5 x 4 mini-batches
 //! of 1536; `benches/ppo.rs`, 2 cores with AVX-512): one update is ~71 GFLOP of
@@ -42,6 +43,7 @@ pub mod actor_critic;
 pub mod adam;
 pub mod adaptation;
 pub mod checkpoint;
+pub mod collective;
 pub mod layout;
 pub mod learner;
 pub mod mat;
@@ -51,7 +53,8 @@ pub mod risk;
 pub mod storage;
 
 pub use actor_critic::{ActorCritic, Critic};
-pub use checkpoint::{load_checkpoint, save_checkpoint};
+pub use checkpoint::{load_checkpoint, parse_checkpoint, save_checkpoint};
+pub use collective::{Collective, SingleProcess};
 pub use layout::{gather_columns, relayout_rows, ObsLayout};
 pub use learner::{
     AdaptationConfig, CriticKind, EncoderConfig, Learner, LearnerConfig, NamedTensor,

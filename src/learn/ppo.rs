@@ -2,9 +2,17 @@
 //! surrogate, value loss (quantile Huber for IQN, MSE for the scalar critic),
 //! entropy bonus, Adam with the adaptive-KL learning rate, global gradient-norm
 //! clipping, per-mini-batch advantage normalisation.
+//!
+//! Data-parallel (N ranks, [`Collective`]): each rank holds its own rollout and
+//! draws the same shuffles and taus (the update RNG is seeded alike), so rank
+//! r's mini-batch k is its share of one global mini-batch of N x b rows. The
+//! advantages are normalised with that global batch's mean and std, and the
+//! gradients, KL and loss statistics are averaged over the ranks before the
+//! clip: every rank takes the same Adam step as one process would on the union.
 
 use super::actor_critic::{ActorCritic, Critic, HALF_LN_2PI};
 use super::adam::{AdamConfig, AdamState};
+use super::collective::Collective;
 use super::mat::{add_assign, serial};
 use super::nets::{IqnCache, MlpCache};
 use super::risk::{midpoint_taus, quantile_huber_loss};
@@ -152,6 +160,8 @@ pub struct UpdateTimes {
     pub clip_s: f64,
     /// Adam steps.
     pub adam_s: f64,
+    /// Sums across ranks (advantage statistics, gradients); 0 in one process.
+    pub comm_s: f64,
 }
 
 impl UpdateTimes {
@@ -163,6 +173,7 @@ impl UpdateTimes {
             + self.backward_s
             + self.clip_s
             + self.adam_s
+            + self.comm_s
     }
 }
 
@@ -184,6 +195,8 @@ pub struct Workspace {
     mb: MiniBatch,
     shards: Vec<Shard>,
     targets: TargetScratch,
+    /// Gradients and statistics packed for one sum across ranks.
+    reduce: Vec<f32>,
 }
 
 /// Buffers of the once-per-update critic pass over the whole rollout (kept:
@@ -355,7 +368,8 @@ fn targets(
     }
 }
 
-/// One PPO update over a full rollout.
+/// One PPO update over a full rollout (this rank's, with `comm` the others').
+#[allow(clippy::too_many_arguments)] // state, buffers, data, settings, randomness, ranks: all distinct
 pub fn update(
     ac: &mut ActorCritic,
     opt: &mut Optimizer,
@@ -364,6 +378,7 @@ pub fn update(
     cfg: &PpoConfig,
     ccfg: &CriticLossConfig,
     rng: &mut impl Rng,
+    comm: &dyn Collective,
 ) -> Result<UpdateStats> {
     r.validate()?;
     anyhow::ensure!(
@@ -393,8 +408,13 @@ pub fn update(
     let mut count = 0usize;
     let mut clipped_steps = 0usize;
     let Workspace {
-        idx, mb, shards, ..
+        idx,
+        mb,
+        shards,
+        reduce,
+        ..
     } = ws;
+    let ranks = comm.ranks();
     idx.clear();
     idx.extend(0..total);
     // one shard per thread: each runs forward, loss and backward of its rows
@@ -413,7 +433,11 @@ pub fn update(
             gather_into(&mut mb.adv, &tg.adv, 1, batch);
             gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
             let adv = &mut mb.adv;
-            if cfg.normalize_advantage_per_mini_batch && b > 1 {
+            if cfg.normalize_advantage_per_mini_batch && ranks > 1 {
+                time.gather_s += lap();
+                normalize_across_ranks(adv, comm);
+                time.comm_s += lap();
+            } else if cfg.normalize_advantage_per_mini_batch && b > 1 {
                 let mean = adv.iter().sum::<f32>() / b as f32;
                 let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
                 let inv = 1.0 / (var.sqrt() + 1e-8);
@@ -453,12 +477,28 @@ pub fn update(
             time.backward_s += phase(|t| t.backward_s);
             lap();
             let sh0 = &mut shards[0];
+            // mini-batch means of this rank, then their average over the ranks
+            let mut kl = (sh0.kl / b as f64) as f32;
+            let mut policy_loss = (sh0.policy_loss / b as f64) as f32;
+            let mut clip_fraction = sh0.clipped as f32 / b as f32;
+            let mut value_loss = sh0.value_loss as f32;
+            if ranks > 1 {
+                let mut stats4 = [kl, policy_loss, clip_fraction, value_loss];
+                average_across_ranks(
+                    reduce,
+                    &mut sh0.g_actor,
+                    &mut sh0.g_critic,
+                    &mut stats4,
+                    comm,
+                );
+                [kl, policy_loss, clip_fraction, value_loss] = stats4;
+                time.comm_s += lap();
+            }
             // entropy bonus: d(-c_e H)/d log_std = -c_e per dimension
             let off = ac.actor.log_std_offset();
             for g in &mut sh0.g_actor[off..off + ad] {
                 *g -= cfg.entropy_coef;
             }
-            let kl = (sh0.kl / b as f64) as f32;
             if cfg.schedule == LrSchedule::Adaptive {
                 if kl > 2.0 * cfg.desired_kl {
                     opt.lr = (opt.lr / 1.5).max(cfg.min_lr);
@@ -501,11 +541,11 @@ pub fn update(
             );
             time.adam_s += lap();
 
-            stats.policy_loss += (sh0.policy_loss / b as f64) as f32;
-            stats.value_loss += sh0.value_loss as f32;
+            stats.policy_loss += policy_loss;
+            stats.value_loss += value_loss;
             stats.entropy += entropy;
             stats.approx_kl += kl;
-            stats.clip_fraction += sh0.clipped as f32 / b as f32;
+            stats.clip_fraction += clip_fraction;
             stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
             stats.actor_grad_norm += sq_a.sqrt() as f32;
             stats.critic_grad_norm += sq_c.sqrt() as f32;
@@ -526,6 +566,49 @@ pub fn update(
     stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
     stats.time = time;
     Ok(stats)
+}
+
+/// Normalises this rank's share of a global mini-batch to the global mean and
+/// (unbiased) std: one sum of `[sum, sum of squares, count]` across ranks.
+fn normalize_across_ranks(adv: &mut [f32], comm: &dyn Collective) {
+    let mut m = [0.0f64; 3];
+    for a in adv.iter() {
+        m[0] += *a as f64;
+        m[1] += (*a as f64) * (*a as f64);
+    }
+    m[2] = adv.len() as f64;
+    comm.sum_f64(&mut m);
+    let n = m[2];
+    if n < 2.0 {
+        return;
+    }
+    let mean = m[0] / n;
+    let var = ((m[1] - n * mean * mean) / (n - 1.0)).max(0.0);
+    let inv = 1.0 / (var.sqrt() + 1e-8);
+    adv.iter_mut()
+        .for_each(|a| *a = ((*a as f64 - mean) * inv) as f32);
+}
+
+/// Replaces this rank's mini-batch gradients and statistics by their mean over
+/// the ranks: one packed sum of `[g_actor, g_critic, stats]`.
+fn average_across_ranks(
+    buf: &mut Vec<f32>,
+    g_actor: &mut [f32],
+    g_critic: &mut [f32],
+    stats: &mut [f32],
+    comm: &dyn Collective,
+) {
+    buf.clear();
+    buf.extend_from_slice(g_actor);
+    buf.extend_from_slice(g_critic);
+    buf.extend_from_slice(stats);
+    comm.sum_f32(buf);
+    let inv = 1.0 / comm.ranks() as f32;
+    let (a, rest) = buf.split_at(g_actor.len());
+    let (c, st) = rest.split_at(g_critic.len());
+    for (dst, src) in [(g_actor, a), (g_critic, c), (stats, st)] {
+        dst.iter_mut().zip(src).for_each(|(d, s)| *d = s * inv);
+    }
 }
 
 /// Forward, losses and backward of one shard's rows of the mini-batch (`b`

@@ -54,6 +54,47 @@ impl EpisodeStats {
     }
 }
 
+impl EpisodeStats {
+    /// Sums that add across ranks: `[n, n x return, n x length, tracking x steps,
+    /// falls, n x term...]` (see [`Self::from_sums`]).
+    pub fn sums(&self) -> Vec<f64> {
+        let n = self.episodes as f64;
+        let steps = n * self.mean_length_steps;
+        let mut v = vec![
+            n,
+            n * self.mean_return,
+            steps,
+            self.lin_tracking_score * steps,
+            self.falls as f64,
+        ];
+        v.extend(self.reward_terms.iter().map(|t| n * t));
+        v
+    }
+
+    /// The statistics of the episodes behind several ranks' summed [`Self::sums`].
+    pub fn from_sums(v: &[f64]) -> EpisodeStats {
+        let mut s = EpisodeStats {
+            episodes: v[0].round() as usize,
+            falls: v[4].round() as usize,
+            ..Default::default()
+        };
+        if v[0] > 0.0 {
+            s.mean_return = v[1] / v[0];
+            s.mean_length_steps = v[2] / v[0];
+            for (t, x) in s.reward_terms.iter_mut().zip(&v[5..]) {
+                *t = x / v[0];
+            }
+        }
+        if v[2] > 0.0 {
+            s.lin_tracking_score = v[3] / v[2];
+        }
+        s
+    }
+
+    /// Length of [`Self::sums`].
+    pub const SUMS_LEN: usize = 5 + NUM_REWARD_TERMS;
+}
+
 /// Where the collection's wall time went (seconds per iteration).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CollectTimes {
@@ -85,11 +126,13 @@ pub struct IterationRow<'a> {
     pub risk_exceeded: &'a [u64; NUM_RISK_TERMS],
     pub risk_fired: &'a [u64; NUM_RISK_TERMS],
     pub instabilities: u64,
+    /// Processes training the policy (MPI ranks; 1 alone).
+    pub ranks: usize,
 }
 
 /// Columns appended after the risk counters: gradient norms and where the
 /// iteration's time went (seconds).
-const TIMING_COLUMNS: [&str; 15] = [
+const TIMING_COLUMNS: [&str; 17] = [
     "actor_grad_norm",
     "critic_grad_norm",
     "clipped_fraction",
@@ -105,7 +148,18 @@ const TIMING_COLUMNS: [&str; 15] = [
     "learn_backward_s",
     "learn_clip_s",
     "learn_adam_s",
+    "learn_comm_s",
+    "ranks",
 ];
+
+/// For each column of `new_head`, its index in `old_head` (by name).
+fn column_map(old_head: &str, new_head: &str) -> Vec<Option<usize>> {
+    let old: Vec<&str> = old_head.split(',').collect();
+    new_head
+        .split(',')
+        .map(|c| old.iter().position(|o| *o == c))
+        .collect()
+}
 
 pub struct MetricsCsv {
     out: BufWriter<File>,
@@ -147,9 +201,10 @@ fn header() -> String {
 
 impl MetricsCsv {
     /// Opens the metrics of a run resumed at `iteration`: rows after it (written
-    /// after the checkpoint the run resumes from), a row cut short by a full disk
-    /// or a kill, and rows of another column layout are dropped, atomically
-    /// (temp file + rename), then the file is opened for appending.
+    /// after the checkpoint the run resumes from) and a row cut short by a full
+    /// disk or a kill are dropped; rows written by an older rall (other columns)
+    /// are carried over by column name, columns they lack left empty; all
+    /// atomically (temp file + rename), then the file is opened for appending.
     pub fn open_resumed(path: &Path, iteration: usize) -> Result<MetricsCsv> {
         Self::open_resumed_with(path, iteration, &header())
     }
@@ -160,18 +215,24 @@ impl MetricsCsv {
         if path.exists() {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("reading {}", path.display()))?;
-            let width = head.split(',').count();
             let mut kept = String::with_capacity(text.len());
             kept.push_str(head);
             kept.push('\n');
             // only complete lines (a cut last line has no newline)
             let complete = text.rsplit_once('\n').map_or("", |(c, _)| c);
-            for line in complete.lines().skip(1) {
-                let it = line.split(',').next().and_then(|v| v.parse::<usize>().ok());
-                if line.split(',').count() == width && it.is_some_and(|it| it <= iteration) {
-                    kept.push_str(line);
-                    kept.push('\n');
+            let mut lines = complete.lines();
+            let old_head = lines.next().unwrap_or(head);
+            let map = column_map(old_head, head);
+            let old_width = old_head.split(',').count();
+            for line in lines {
+                let fields: Vec<&str> = line.split(',').collect();
+                let it = fields.first().and_then(|v| v.parse::<usize>().ok());
+                if fields.len() != old_width || it.is_none_or(|it| it > iteration) {
+                    continue;
                 }
+                let row: Vec<&str> = map.iter().map(|m| m.map_or("", |k| fields[k])).collect();
+                kept.push_str(&row.join(","));
+                kept.push('\n');
             }
             let tmp = path.with_extension("csv.tmp");
             let write = || -> std::io::Result<()> {
@@ -274,9 +335,11 @@ impl MetricsCsv {
             t.backward_s,
             t.clip_s,
             t.adam_s,
+            t.comm_s,
         ] {
             row.push_str(&format!(",{v:.4}"));
         }
+        row.push_str(&format!(",{}", r.ranks));
         writeln!(self.out, "{row}").context("writing metrics.csv")?;
         self.out.flush().context("writing metrics.csv")?;
         Ok(())

@@ -1,9 +1,11 @@
-//! The runner: the training loop, metrics and checkpoint files.
+//! The runner: the training loop (alone or as MPI ranks), metrics and checkpoint files.
 
 mod adapt;
+pub mod dist;
 pub mod metrics;
 pub mod policy_file;
 pub mod train;
 
-pub use policy_file::{load_policy, save_policy, LoadedPolicy, Progress};
-pub use train::{train, IterationObserver, RunDir, TrainSummary, LATEST};
+pub use dist::World;
+pub use policy_file::{load_policy, load_policy_bytes, save_policy, LoadedPolicy, Progress};
+pub use train::{train, train_in, IterationObserver, RunDir, TrainSummary, LATEST};

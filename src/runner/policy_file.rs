@@ -9,7 +9,10 @@ use anyhow::{bail, Context, Result};
 use crate::config::TrainConfig;
 use crate::env::observation::layout_string;
 use crate::env::{ACT_DIM, OBS_DIM};
-use crate::learn::{load_checkpoint, save_checkpoint, LatentSource, Learner, ObsLayout};
+use crate::learn::{
+    load_checkpoint, parse_checkpoint, save_checkpoint, LatentSource, Learner, NamedTensor,
+    ObsLayout,
+};
 
 /// Bumped when the file layout changes incompatibly.
 pub const FORMAT_VERSION: &str = "1";
@@ -107,7 +110,18 @@ fn meta_parse<T: std::str::FromStr>(
 /// Loads a checkpoint, refusing one whose format, observation layout or
 /// tensor shapes do not match this build.
 pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
-    let (tensors, meta) = load_checkpoint(path)?;
+    policy_from_parts(load_checkpoint(path)?, path)
+}
+
+/// [`load_policy`] of a checkpoint file's bytes (e.g. broadcast from MPI rank 0).
+pub fn load_policy_bytes(bytes: &[u8], path: &Path) -> Result<LoadedPolicy> {
+    policy_from_parts(parse_checkpoint(bytes, path)?, path)
+}
+
+fn policy_from_parts(
+    (tensors, meta): (Vec<NamedTensor>, HashMap<String, String>),
+    path: &Path,
+) -> Result<LoadedPolicy> {
     let format = meta_value(&meta, "format", path)?;
     if format != "rall-checkpoint" {
         bail!(

@@ -1,5 +1,11 @@
 //! The training loop: collect `steps_per_env` steps from every env, update,
 //! log, checkpoint. Resumable; Ctrl-C writes a last checkpoint.
+//!
+//! Data-parallel under MPI ([`World`]): every rank runs this loop over its own
+//! `num_envs` environments (own seeds, own terrain curriculum) and the update
+//! averages the gradients of all ranks, so all hold the same parameters; rank 0
+//! alone writes the run directory. Ranks compare a hash of their learner state
+//! every [`PARAM_CHECK_INTERVAL`] iterations and at every checkpoint.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -11,12 +17,16 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use super::dist::{diverged_ranks, hash_f32, rank_seed, World};
 use super::metrics::{CollectTimes, EpisodeStats, IterationRow, MetricsCsv};
-use super::policy_file::{load_policy, save_policy, Progress};
+use super::policy_file::{load_policy, load_policy_bytes, save_policy, Progress};
 use crate::config::TrainConfig;
 use crate::env::risk::NUM_RISK_TERMS;
 use crate::env::{build_scene, EpisodeSummary, VecEnv, ACT_DIM};
-use crate::learn::{Learner, Rollout, UpdateStats, UpdateTimes};
+use crate::learn::{Collective, Learner, Rollout, UpdateStats, UpdateTimes};
+
+/// Iterations between two comparisons of the ranks' learner state (MPI).
+pub const PARAM_CHECK_INTERVAL: usize = 10;
 
 /// Name of the rolling checkpoint in a run directory.
 pub const LATEST: &str = "latest.safetensors";
@@ -153,9 +163,17 @@ impl Drop for RunLock {
     }
 }
 
-/// Whether process `pid` exists (Linux /proc).
+/// Whether process `pid` exists and has not exited (Linux /proc; a zombie,
+/// e.g. an MPI rank whose launcher is gone and not yet reaped, is dead).
 fn process_alive(pid: u32) -> bool {
-    Path::new(&format!("/proc/{pid}")).exists()
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // "pid (comm) S ...": the state follows the last ')'
+        Ok(stat) => stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.split_whitespace().next())
+            .is_some_and(|state| state != "Z" && state != "X"),
+        Err(_) => false,
+    }
 }
 
 /// Called once per iteration with the row just logged (for the rerun logger, tests).
@@ -178,8 +196,22 @@ pub struct TrainSummary {
 }
 
 /// Starts a new run in `run_dir`, or resumes the one there when `resume` is set
-/// (then `cfg` only supplies a new iteration target).
+/// (then `cfg` only supplies a new iteration target). One process.
 pub fn train(
+    cfg: TrainConfig,
+    run_dir: &Path,
+    resume: bool,
+    stop: Arc<AtomicBool>,
+    observer: &mut dyn IterationObserver,
+) -> Result<TrainSummary> {
+    train_in(&World::Single, cfg, run_dir, resume, stop, observer)
+}
+
+/// [`train`] as one rank of `world`. Every rank calls it with the same
+/// arguments; rank 0's config, checkpoint and parameters are broadcast, and
+/// only rank 0 touches `run_dir` (other ranks' `observer` is never called).
+pub fn train_in(
+    world: &World,
     cfg: TrainConfig,
     run_dir: &Path,
     resume: bool,
@@ -189,42 +221,62 @@ pub fn train(
     let dir = RunDir {
         root: run_dir.to_path_buf(),
     };
-    std::fs::create_dir_all(&dir.root)
-        .with_context(|| format!("creating run directory {}", dir.root.display()))?;
+    let (rank, ranks, root) = (world.rank(), world.size(), world.is_root());
     // one trainer per run directory (another one's temp files are not ours to remove)
-    let _lock = RunLock::acquire(&dir.root)?;
-    dir.remove_temp_files();
+    let _lock = if root {
+        std::fs::create_dir_all(&dir.root)
+            .with_context(|| format!("creating run directory {}", dir.root.display()))?;
+        let lock = RunLock::acquire(&dir.root)?;
+        dir.remove_temp_files();
+        Some(lock)
+    } else {
+        None
+    };
     let (mut cfg, mut learner, mut progress) = if resume {
-        let (path, loaded) = dir.resume_point()?;
+        // rank 0 picks and reads the checkpoint; every rank loads the same bytes
+        let (mut path, mut bytes) = (PathBuf::new(), Vec::new());
+        if root {
+            path = dir.resume_point()?.0;
+            bytes = std::fs::read(&path)
+                .with_context(|| format!("reading checkpoint {}", path.display()))?;
+        }
+        world.broadcast_bytes(&mut bytes);
+        let loaded = load_policy_bytes(&bytes, &path)?;
         let mut stored = loaded.config;
         // runner settings that do not change what is learned may differ on resume
         stored.runner.iterations = cfg.runner.iterations;
         stored.runner.threads = cfg.runner.threads;
         stored.runner.save_interval = cfg.runner.save_interval;
         stored.runner.log_interval = cfg.runner.log_interval;
-        println!(
-            "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps, {}, seed {}",
-            dir.root.display(),
-            path.display(),
-            loaded.progress.iteration,
-            loaded.learner.learning_rate(),
-            stored.runner.num_envs,
-            stored.runner.steps_per_env,
-            stored.learner.risk_label(),
-            stored.runner.seed
-        );
+        if root {
+            println!(
+                "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
+                dir.root.display(),
+                path.display(),
+                loaded.progress.iteration,
+                loaded.learner.learning_rate(),
+                stored.runner.num_envs,
+                stored.runner.steps_per_env,
+                ranks_note(ranks),
+                stored.learner.risk_label(),
+                stored.runner.seed
+            );
+        }
         (stored, loaded.learner, loaded.progress)
     } else {
         cfg.validate()?;
-        println!(
-            "training {} envs x {} steps, critic {:?}, {}, seed {} -> {}",
-            cfg.runner.num_envs,
-            cfg.runner.steps_per_env,
-            cfg.learner.critic,
-            cfg.learner.risk_label(),
-            cfg.runner.seed,
-            dir.root.display()
-        );
+        if root {
+            println!(
+                "training {} envs x {} steps{}, critic {:?}, {}, seed {} -> {}",
+                cfg.runner.num_envs,
+                cfg.runner.steps_per_env,
+                ranks_note(ranks),
+                cfg.learner.critic,
+                cfg.learner.risk_label(),
+                cfg.runner.seed,
+                dir.root.display()
+            );
+        }
         let learner = Learner::with_layout(
             &cfg.env.obs_layout(),
             ACT_DIM,
@@ -237,13 +289,41 @@ pub fn train(
         };
         (cfg, learner, progress)
     };
-    std::fs::write(dir.root.join("config.toml"), cfg.to_toml()).context("writing config.toml")?;
+    if ranks > 1 {
+        // rank 0's settings and parameters on every rank (runner overrides included)
+        let mut toml = cfg.to_toml().into_bytes();
+        world.broadcast_bytes(&mut toml);
+        cfg = TrainConfig::from_toml_str(&String::from_utf8_lossy(&toml))
+            .context("the config broadcast by rank 0")?;
+        broadcast_learner_state(world, &mut learner)?;
+        if cfg.learner.adaptation.is_some() && root {
+            println!("note: RMA phase 2 (the adaptation module) runs in one process: after phase 1, resume the run without mpirun");
+        }
+    }
+    if root {
+        std::fs::write(dir.root.join("config.toml"), cfg.to_toml())
+            .context("writing config.toml")?;
+    }
 
     let r = &cfg.runner;
     let threads = crate::config::worker_threads(r.threads);
+    // the learner runs on rayon's global pool: give it the same threads as the
+    // envs' pool (settable once per process; `rall train` sets it here first)
+    let _ = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build_global();
+    if rayon::current_num_threads() != threads && root {
+        eprintln!(
+            "note: the learner uses {} threads (this process's rayon pool was sized before this run), the envs {threads}",
+            rayon::current_num_threads()
+        );
+    }
     // Envs restart fresh episodes on resume, seeded by the iteration so a resumed
     // run does not replay the first run's episodes.
-    let env_seed = r.seed.wrapping_add(progress.iteration as u64 * 0x9E37_79B9);
+    let env_seed = rank_seed(
+        r.seed.wrapping_add(progress.iteration as u64 * 0x9E37_79B9),
+        rank,
+    );
     let scene = build_scene(&cfg.env, r.seed).context("building the scene")?;
     let mut envs = VecEnv::new(
         Arc::new(cfg.env.clone()),
@@ -254,20 +334,36 @@ pub fn train(
         env_seed,
     )?;
     if let Some(levels) = &progress.terrain_levels {
-        envs.restore_terrain_levels(levels)
+        envs.restore_terrain_levels(&rank_levels(levels, rank, r.num_envs))
             .context("restoring the terrain curriculum of the checkpoint")?;
     }
     if cfg.env.episode.randomize_initial_length {
         envs.randomize_episode_progress();
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(progress.rng_seed);
+    // action noise: each rank its own stream (same number of draws on every rank)
+    let mut rng = ChaCha8Rng::seed_from_u64(rank_seed(progress.rng_seed, rank));
     rng.set_word_pos(progress.rng_word_pos);
     let mut rollout = Rollout::new(r.steps_per_env, r.num_envs, envs.obs_width(), ACT_DIM);
     // a resumed run continues from its checkpoint: later rows are dropped
-    let mut metrics = MetricsCsv::open_resumed(&dir.metrics(), progress.iteration)?;
+    let mut metrics = match root {
+        true => Some(MetricsCsv::open_resumed(
+            &dir.metrics(),
+            progress.iteration,
+        )?),
+        false => None,
+    };
     let lin_weight_dt = cfg.env.reward.lin_vel_tracking * cfg.env.control.policy_dt_s();
 
-    let bar = progress_bar(progress.iteration, r.iterations);
+    let bar = match root {
+        true => progress_bar(progress.iteration, r.iterations),
+        false => ProgressBar::hidden(),
+    };
+    // rank 0 speaks for the job
+    let say = |line: String| {
+        if root {
+            log_line(&bar, line)
+        }
+    };
     let mut obs = envs.batch().obs.clone();
     let mut episodes: Vec<EpisodeSummary> = Vec::with_capacity(r.num_envs * 4);
     let mut last_stats = EpisodeStats::default();
@@ -277,7 +373,10 @@ pub fn train(
     let mut instabilities_before = envs.instabilities();
 
     while progress.iteration < r.iterations {
-        if stop.load(Ordering::SeqCst) {
+        // a signal on any rank stops all of them at the same iteration
+        let mut stop_votes = [stop.load(Ordering::SeqCst) as u8 as f64];
+        world.sum_f64(&mut stop_votes);
+        if stop_votes[0] > 0.0 {
             interrupted = true;
             break;
         }
@@ -317,29 +416,37 @@ pub fn train(
         };
         // --- learning ---
         let t1 = Instant::now();
-        let update: UpdateStats = learner.update(&rollout)?;
+        let update: UpdateStats = learner.update_with(&rollout, world)?;
         let learn_s = t1.elapsed().as_secs_f64();
         ensure_finite(&update, &learner, progress.iteration + 1, &last_checkpoint)?;
-        let new_instabilities = envs.instabilities() - instabilities_before;
-        instabilities_before += new_instabilities;
+        inject_divergence_fault(rank, progress.iteration + 1, &mut learner)?;
+        // this iteration's statistics over all ranks
+        let local_new = envs.instabilities() - instabilities_before;
+        instabilities_before += local_new;
+        let job = JobIteration::reduce(
+            world,
+            EpisodeStats::from_episodes(&episodes, lin_weight_dt),
+            &risk_exceeded,
+            &risk_fired,
+            envs.mean_terrain_level(),
+            [local_new, envs.instabilities()],
+        );
+        let (risk_exceeded, risk_fired) = (job.risk_exceeded, job.risk_fired);
+        let [new_instabilities, all_instabilities] = job.instabilities;
         if new_instabilities > 0 {
-            log_line(
-                &bar,
-                format!(
-                    "warning: iteration {}: {new_instabilities} physics failures (MuJoCo flagged a bad state; those episodes were reset). Many mean the physics dt or the gains are off.",
-                    progress.iteration + 1
-                ),
-            );
+            say(format!(
+                "warning: iteration {}: {new_instabilities} physics failures (MuJoCo flagged a bad state; those episodes were reset). Many mean the physics dt or the gains are off.",
+                progress.iteration + 1
+            ));
         }
 
         progress.iteration += 1;
-        let iteration_env_steps = (r.num_envs * r.steps_per_env) as u64;
+        let iteration_env_steps = (r.num_envs * r.steps_per_env * ranks) as u64;
         progress.total_env_steps += iteration_env_steps;
         progress.wall_s = wall_start.elapsed().as_secs_f64();
         progress.rng_word_pos = rng.get_word_pos();
-        progress.terrain_levels = envs.terrain_levels();
-        if !episodes.is_empty() {
-            last_stats = EpisodeStats::from_episodes(&episodes, lin_weight_dt);
+        if job.episodes.episodes > 0 {
+            last_stats = job.episodes;
         }
         let row = IterationRow {
             iteration: progress.iteration,
@@ -351,13 +458,16 @@ pub fn train(
             collect_times,
             episodes: &last_stats,
             update: &update,
-            terrain_level: envs.mean_terrain_level(),
+            terrain_level: job.terrain_level,
             risk_exceeded: &risk_exceeded,
             risk_fired: &risk_fired,
-            instabilities: envs.instabilities(),
+            instabilities: all_instabilities,
+            ranks,
         };
-        metrics.write(&row)?;
-        observer.on_iteration(&row, &learner)?;
+        if let Some(m) = metrics.as_mut() {
+            m.write(&row)?;
+            observer.on_iteration(&row, &learner)?;
+        }
         bar.set_position(progress.iteration as u64);
         let status = format!(
             "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | risk {}/{} | lr {:.1e} | std {:.3} | value loss {:.4}",
@@ -379,16 +489,28 @@ pub fn train(
             update.value_loss,
         );
         if progress.iteration.is_multiple_of(r.log_interval) || progress.iteration == 1 {
-            log_line(&bar, status.clone());
-            log_line(&bar, time_split(&collect_times, &update.time));
+            say(status.clone());
+            say(time_split(&collect_times, &update.time));
         }
         bar.set_message(status);
         episodes.clear();
-        if progress.iteration % r.save_interval == 0 || progress.iteration == r.iterations {
-            last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
+        let save = progress.iteration.is_multiple_of(r.save_interval)
+            || progress.iteration == r.iterations;
+        if ranks > 1 && (save || progress.iteration.is_multiple_of(PARAM_CHECK_INTERVAL)) {
+            check_same_state(world, &learner, progress.iteration)?;
+        }
+        if save {
+            last_checkpoint =
+                save_job_checkpoint(world, &dir, &learner, &cfg, &mut progress, &envs)?;
         }
     }
-    if !interrupted {
+    if !interrupted && ranks > 1 && cfg.learner.adaptation.is_some() {
+        say(format!(
+            "RMA phase 1 done at iteration {}; run phase 2 in one process: rall train --resume {}",
+            progress.iteration,
+            dir.root.display()
+        ));
+    } else if !interrupted {
         let world = super::adapt::PhaseWorld {
             scene: &scene,
             threads,
@@ -420,14 +542,14 @@ pub fn train(
         }
     }
     if interrupted {
-        last_checkpoint = save_both(&dir, &learner, &cfg, &progress)?;
-        log_line(
-            &bar,
-            format!(
-                "interrupted: checkpoint written at iteration {}",
-                progress.iteration
-            ),
-        );
+        if ranks > 1 {
+            check_same_state(world, &learner, progress.iteration)?;
+        }
+        last_checkpoint = save_job_checkpoint(world, &dir, &learner, &cfg, &mut progress, &envs)?;
+        say(format!(
+            "interrupted: checkpoint written at iteration {}",
+            progress.iteration
+        ));
     }
     bar.finish_and_clear();
     Ok(TrainSummary {
@@ -437,6 +559,146 @@ pub fn train(
         last_checkpoint,
         final_episode_stats: last_stats,
     })
+}
+
+/// " on N ranks" for N > 1.
+fn ranks_note(ranks: usize) -> String {
+    match ranks {
+        1 => String::new(),
+        n => format!(" on each of {n} ranks"),
+    }
+}
+
+/// One iteration's statistics summed (means: averaged) over every rank.
+struct JobIteration {
+    episodes: EpisodeStats,
+    risk_exceeded: [u64; NUM_RISK_TERMS],
+    risk_fired: [u64; NUM_RISK_TERMS],
+    terrain_level: f64,
+    instabilities: [u64; 2],
+}
+
+impl JobIteration {
+    /// One sum across ranks of everything the metrics row reports.
+    fn reduce(
+        world: &World,
+        episodes: EpisodeStats,
+        risk_exceeded: &[u64; NUM_RISK_TERMS],
+        risk_fired: &[u64; NUM_RISK_TERMS],
+        terrain_level: f64,
+        instabilities: [u64; 2],
+    ) -> JobIteration {
+        let mut v = episodes.sums();
+        let n_ep = v.len();
+        v.extend(risk_exceeded.iter().chain(risk_fired).map(|x| *x as f64));
+        v.push(terrain_level);
+        v.extend(instabilities.map(|x| x as f64));
+        world.sum_f64(&mut v);
+        let count = |k: usize| v[k].round() as u64;
+        let k = n_ep + 2 * NUM_RISK_TERMS;
+        JobIteration {
+            episodes: EpisodeStats::from_sums(&v[..n_ep]),
+            risk_exceeded: std::array::from_fn(|i| count(n_ep + i)),
+            risk_fired: std::array::from_fn(|i| count(n_ep + NUM_RISK_TERMS + i)),
+            terrain_level: v[k] / world.size() as f64,
+            instabilities: [count(k + 1), count(k + 2)],
+        }
+    }
+}
+
+/// Rank `rank`'s terrain levels from a checkpoint's: its own slice when the
+/// checkpoint holds every rank's (`ranks x num_envs`), else the stored levels
+/// cycled (a checkpoint of another rank count).
+fn rank_levels(stored: &[usize], rank: usize, num_envs: usize) -> Vec<usize> {
+    if stored.is_empty() {
+        return Vec::new();
+    }
+    (0..num_envs)
+        .map(|i| stored[(rank * num_envs + i) % stored.len()])
+        .collect()
+}
+
+/// Rank 0's learner state (weights, Adam moments, step, lr) on every rank.
+fn broadcast_learner_state(world: &World, learner: &mut Learner) -> Result<()> {
+    let mut state = learner.state();
+    let mut bytes: Vec<u8> = state
+        .iter()
+        .flat_map(|t| t.data.iter().flat_map(|v| v.to_le_bytes()))
+        .collect();
+    world.broadcast_bytes(&mut bytes);
+    let mut values = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]));
+    for t in &mut state {
+        for v in &mut t.data {
+            *v = values
+                .next()
+                .context("rank 0's learner state is smaller than this rank's")?;
+        }
+    }
+    learner.load_state(&state)
+}
+
+/// Compares the ranks' learner state; a divergence stops every rank, naming
+/// the ranks that differ from rank 0.
+fn check_same_state(world: &World, learner: &Learner, iteration: usize) -> Result<()> {
+    let hash = hash_f32(learner.state().iter().flat_map(|t| t.data.clone()));
+    let hashes = world.all_gather_u64(hash);
+    let bad = diverged_ranks(&hashes);
+    if bad.is_empty() {
+        return Ok(());
+    }
+    anyhow::bail!(
+        "the ranks' parameters diverged at iteration {iteration}: rank(s) {bad:?} differ from rank 0 (state hashes {hashes:016x?}); the run stops (resume it from its last checkpoint)"
+    )
+}
+
+/// Fault injection for the divergence check's test: `RALL_FAULT_PERTURB=<rank>:<iteration>`
+/// nudges one weight of that rank after that iteration's update.
+fn inject_divergence_fault(rank: usize, iteration: usize, learner: &mut Learner) -> Result<()> {
+    let Ok(spec) = std::env::var("RALL_FAULT_PERTURB") else {
+        return Ok(());
+    };
+    let target = spec
+        .split_once(':')
+        .and_then(|(r, i)| Some((r.parse::<usize>().ok()?, i.parse::<usize>().ok()?)));
+    let Some((r, i)) = target else {
+        anyhow::bail!("RALL_FAULT_PERTURB={spec:?}: expected <rank>:<iteration>");
+    };
+    if (r, i) == (rank, iteration) {
+        let mut state = learner.state();
+        state[0].data[0] += 1e-3;
+        learner.load_state(&state)?;
+    }
+    Ok(())
+}
+
+/// Writes the checkpoints (rank 0) with every rank's terrain levels.
+fn save_job_checkpoint(
+    world: &World,
+    dir: &RunDir,
+    learner: &Learner,
+    cfg: &TrainConfig,
+    progress: &mut Progress,
+    envs: &VecEnv,
+) -> Result<PathBuf> {
+    progress.terrain_levels = match envs.terrain_levels() {
+        Some(mine) if world.size() > 1 => {
+            // each rank fills its own slice; the sum gathers them all
+            let n = mine.len();
+            let mut all = vec![0.0f64; n * world.size()];
+            let own = &mut all[world.rank() * n..(world.rank() + 1) * n];
+            own.iter_mut().zip(&mine).for_each(|(a, l)| *a = *l as f64);
+            world.sum_f64(&mut all);
+            Some(all.iter().map(|l| l.round() as usize).collect())
+        }
+        mine => mine,
+    };
+    if world.is_root() {
+        save_both(dir, learner, cfg, progress)
+    } else {
+        Ok(dir.checkpoint(progress.iteration))
+    }
 }
 
 /// Stops a run whose update produced a non-finite loss or weights, instead of
@@ -482,7 +744,7 @@ pub(super) fn save_both(
 /// One log line saying where the iteration's time went.
 fn time_split(c: &CollectTimes, l: &UpdateTimes) -> String {
     format!(
-        "      time | collect: physics {:.3}s task {:.3}s reset {:.3}s inference {:.3}s storage {:.3}s | learn: targets {:.3}s gather {:.3}s forward {:.3}s loss {:.3}s backward {:.3}s clip {:.3}s adam {:.3}s",
+        "      time | collect: physics {:.3}s task {:.3}s reset {:.3}s inference {:.3}s storage {:.3}s | learn: targets {:.3}s gather {:.3}s forward {:.3}s loss {:.3}s backward {:.3}s clip {:.3}s adam {:.3}s comm {:.3}s",
         c.physics_s,
         c.task_s,
         c.reset_s,
@@ -494,7 +756,8 @@ fn time_split(c: &CollectTimes, l: &UpdateTimes) -> String {
         l.loss_s,
         l.backward_s,
         l.clip_s,
-        l.adam_s
+        l.adam_s,
+        l.comm_s
     )
 }
 
