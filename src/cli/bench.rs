@@ -1,11 +1,16 @@
-//! `rall bench env`: size runs on your own workstation.
+//! `rall bench env`: size runs on your own workstation. `rall bench comm`
+//! (under mpirun): what the data-parallel update's sums cost on your network.
 
 use anyhow::Result;
 use clap::{Args, Subcommand, ValueEnum};
 
+use crate::config::TrainConfig;
 use crate::env::bench::bench_env;
 use crate::env::terrain::TerrainKind;
-use crate::env::EnvConfig;
+use crate::env::{EnvConfig, ACT_DIM};
+use crate::learn::{Collective, Learner};
+use crate::runner::World;
+use std::time::Instant;
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
@@ -17,6 +22,25 @@ pub struct BenchArgs {
 pub enum BenchCommand {
     /// Env steps/s versus the raw physics limit (mj_step x decimation with the same PD).
     Env(EnvBenchArgs),
+    /// Under `mpirun -np N`: time of the update's all-reduces (the learner's
+    /// gradient size from a config) and their projected cost at 16 and 64 ranks.
+    Comm(CommBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CommBenchArgs {
+    /// Run configuration whose networks set the gradient size.
+    #[arg(long, default_value = "configs/rall.toml")]
+    pub config: std::path::PathBuf,
+    /// Timed all-reduces per message size.
+    #[arg(long, default_value_t = 100)]
+    pub repeats: usize,
+    /// Network bandwidth (Gbit/s) of the projection's cluster.
+    #[arg(long, default_value_t = 25.0)]
+    pub net_gbps: f64,
+    /// Network latency (microseconds per message) of the projection's cluster.
+    #[arg(long, default_value_t = 20.0)]
+    pub net_latency_us: f64,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -45,6 +69,7 @@ pub struct EnvBenchArgs {
 pub fn run(args: &BenchArgs) -> Result<()> {
     match &args.what {
         BenchCommand::Env(a) => env(a),
+        BenchCommand::Comm(a) => comm(a),
     }
 }
 
@@ -74,6 +99,98 @@ fn env(a: &EnvBenchArgs) -> Result<()> {
             r.raw_steps_per_s,
             r.ratio(),
             r.env_steps_per_s / base
+        );
+    }
+    Ok(())
+}
+
+/// Median seconds of `repeats` sums of `n` floats across the ranks (each
+/// preceded by a one-value sum, so that ranks start together).
+fn time_sum(world: &World, n: usize, repeats: usize) -> f64 {
+    let mut v = vec![1.0f32; n];
+    let mut sync = [0.0f64];
+    let mut times = Vec::with_capacity(repeats);
+    for k in 0..repeats + 5 {
+        world.sum_f64(&mut sync);
+        let t = Instant::now();
+        world.sum_f32(&mut v);
+        if k >= 5 {
+            times.push(t.elapsed().as_secs_f64());
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+/// Ring all-reduce model: `T(p) = 2 (p - 1) alpha + 2 (p - 1) / p x bytes x beta`.
+fn ring_s(p: usize, bytes: f64, alpha_s: f64, beta_s_per_byte: f64) -> f64 {
+    let p = p as f64;
+    2.0 * (p - 1.0) * alpha_s + 2.0 * (p - 1.0) / p * bytes * beta_s_per_byte
+}
+
+fn comm(a: &CommBenchArgs) -> Result<()> {
+    let world = World::from_env()?;
+    let p = world.size();
+    anyhow::ensure!(
+        p >= 2,
+        "run this under an MPI launcher with two or more processes, e.g. `mpirun -np 2 rall bench comm`"
+    );
+    let cfg = TrainConfig::from_toml_file(&a.config)?;
+    let learner = Learner::with_layout(&cfg.env.obs_layout(), ACT_DIM, &cfg.learner, 0)?;
+    let ac = learner.actor_critic();
+    // what `ppo::update` sums per mini-batch: both gradients and 4 statistics
+    let floats = ac.actor.params.len() + ac.critic.params().len() + 4;
+    let bytes = 4.0 * floats as f64;
+    let (epochs, n_mb) = (
+        cfg.learner.ppo.num_learning_epochs,
+        cfg.learner.ppo.num_mini_batches,
+    );
+    let per_iter = epochs * n_mb;
+    let moments_bytes = 24.0 * n_mb as f64;
+    let t_small = time_sum(&world, 1, a.repeats);
+    let t_grad = time_sum(&world, floats, a.repeats);
+    if !world.is_root() {
+        return Ok(());
+    }
+    let alpha = t_small / (2.0 * (p as f64 - 1.0));
+    let beta = ((t_grad - 2.0 * (p as f64 - 1.0) * alpha)
+        / (2.0 * (p as f64 - 1.0) / p as f64 * bytes))
+        .max(0.0);
+    let (net_alpha, net_beta) = (a.net_latency_us * 1e-6, 8.0 / (a.net_gbps * 1e9));
+    println!(
+        "{} ranks; {}: {floats} floats ({:.2} MB) per gradient all-reduce, {per_iter} per iteration ({} epochs x {} mini-batches), plus one advantage-moment sum per epoch",
+        p,
+        a.config.display(),
+        bytes / 1e6,
+        cfg.learner.ppo.num_learning_epochs,
+        cfg.learner.ppo.num_mini_batches
+    );
+    println!(
+        "measured (median of {}): 1 float {:.1} us, gradient {:.3} ms ({:.2} GB/s effective); per iteration {:.1} ms",
+        a.repeats,
+        t_small * 1e6,
+        t_grad * 1e3,
+        bytes / t_grad / 1e9,
+        (per_iter as f64 * t_grad + epochs as f64 * t_small) * 1e3
+    );
+    println!(
+        "ring model fitted here: latency {:.1} us, {:.2} GB/s per link; a cluster: {} us, {} Gbit/s",
+        alpha * 1e6,
+        1.0 / beta.max(1e-15) / 1e9,
+        a.net_latency_us,
+        a.net_gbps
+    );
+    println!("ranks | this machine's links: ms per iteration | the cluster's: ms per iteration");
+    for ranks in [2, 16, 64] {
+        let iter = |al: f64, be: f64| {
+            (per_iter as f64 * ring_s(ranks, bytes, al, be)
+                + epochs as f64 * ring_s(ranks, moments_bytes, al, be))
+                * 1e3
+        };
+        println!(
+            "{ranks:>5} | {:>38.1} | {:>30.1}",
+            iter(alpha, beta),
+            iter(net_alpha, net_beta)
         );
     }
     Ok(())

@@ -6,7 +6,8 @@
 //! Data-parallel (N ranks, [`Collective`]): each rank holds its own rollout and
 //! draws the same shuffles and taus (the update RNG is seeded alike), so rank
 //! r's mini-batch k is its share of one global mini-batch of N x b rows. The
-//! advantages are normalised with that global batch's mean and std, and the
+//! advantages are normalised with that global batch's mean and std (one sum
+//! of every mini-batch's moments per epoch), and the
 //! gradients, KL and loss statistics are averaged over the ranks before the
 //! clip: every rank takes the same Adam step as one process would on the union.
 
@@ -420,8 +421,16 @@ pub fn update(
     // one shard per thread: each runs forward, loss and backward of its rows
     // with single-threaded kernels (measured faster than splitting every GEMM)
     shards.resize_with(rayon::current_num_threads().max(1), Shard::default);
+    let global_norm = cfg.normalize_advantage_per_mini_batch && ranks > 1;
+    let mut mb_moments = Vec::new();
     for _ in 0..cfg.num_learning_epochs {
         idx.shuffle(rng);
+        if global_norm {
+            // every mini-batch's advantage moments over all ranks: one sum per epoch
+            time.gather_s += lap();
+            mb_moments = advantage_moments(&tg.adv, idx, n_mb, comm);
+            time.comm_s += lap();
+        }
         for k in 0..n_mb {
             let batch = &idx[k * total / n_mb..(k + 1) * total / n_mb];
             let b = batch.len();
@@ -433,10 +442,8 @@ pub fn update(
             gather_into(&mut mb.adv, &tg.adv, 1, batch);
             gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
             let adv = &mut mb.adv;
-            if cfg.normalize_advantage_per_mini_batch && ranks > 1 {
-                time.gather_s += lap();
-                normalize_across_ranks(adv, comm);
-                time.comm_s += lap();
+            if global_norm {
+                normalize_with(adv, &mb_moments[3 * k..3 * k + 3]);
             } else if cfg.normalize_advantage_per_mini_batch && b > 1 {
                 let mean = adv.iter().sum::<f32>() / b as f32;
                 let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
@@ -568,22 +575,34 @@ pub fn update(
     Ok(stats)
 }
 
-/// Normalises this rank's share of a global mini-batch to the global mean and
-/// (unbiased) std: one sum of `[sum, sum of squares, count]` across ranks.
-fn normalize_across_ranks(adv: &mut [f32], comm: &dyn Collective) {
-    let mut m = [0.0f64; 3];
-    for a in adv.iter() {
-        m[0] += *a as f64;
-        m[1] += (*a as f64) * (*a as f64);
+/// `[sum, sum of squares, count]` of the advantages of each of the `n_mb`
+/// mini-batches of `idx`, summed over the ranks (each rank's mini-batch k is
+/// its share of the global mini-batch k).
+fn advantage_moments(adv: &[f32], idx: &[usize], n_mb: usize, comm: &dyn Collective) -> Vec<f64> {
+    let total = idx.len();
+    let mut m = vec![0.0f64; 3 * n_mb];
+    for k in 0..n_mb {
+        let batch = &idx[k * total / n_mb..(k + 1) * total / n_mb];
+        for &i in batch {
+            let a = adv[i] as f64;
+            m[3 * k] += a;
+            m[3 * k + 1] += a * a;
+        }
+        m[3 * k + 2] = batch.len() as f64;
     }
-    m[2] = adv.len() as f64;
     comm.sum_f64(&mut m);
-    let n = m[2];
+    m
+}
+
+/// Normalises this rank's share of a global mini-batch to that batch's mean
+/// and (unbiased) std from its summed `[sum, sum of squares, count]`.
+fn normalize_with(adv: &mut [f32], moments: &[f64]) {
+    let n = moments[2];
     if n < 2.0 {
         return;
     }
-    let mean = m[0] / n;
-    let var = ((m[1] - n * mean * mean) / (n - 1.0)).max(0.0);
+    let mean = moments[0] / n;
+    let var = ((moments[1] - n * mean * mean) / (n - 1.0)).max(0.0);
     let inv = 1.0 / (var.sqrt() + 1e-8);
     adv.iter_mut()
         .for_each(|a| *a = ((*a as f64 - mean) * inv) as f32);
