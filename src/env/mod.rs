@@ -3,11 +3,13 @@
 //! - `config`: the task as data (TOML), validated with the offending key named.
 //! - `state`: a plain snapshot of the robot per policy step.
 //! - `observation`, `reward`, `risk`: pure functions of that snapshot.
+//! - `heightfield`: one height grid as a MuJoCo hfield (terrain and eval ground).
 //! - `terrain`: heightfield tiles and the curriculum.
 //! - `single`, `vec_env`: reset + step.
 
 pub mod bench;
 pub mod config;
+pub mod heightfield;
 pub mod observation;
 pub mod privileged;
 pub mod reward;

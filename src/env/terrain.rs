@@ -10,6 +10,7 @@
 //! the row index along y and the column index along x: exactly MuJoCo's hfield
 //! layout (`data[r * ncol + c]` is the point x = -rx + c dx, y = -ry + r dy
 //! relative to the geom position), so [`Terrain::upload`] is a plain rescale.
+//! The grid itself is a [`Heightfield`], shared with the evaluation ground.
 //!
 //! Tile types follow legged_gym's `terrain.py` in spirit (not its code):
 //! - smooth slope: a pyramid of slope 0.4 d with a flat central platform; the
@@ -30,7 +31,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::sim::{Model, ObjKind};
+use super::heightfield::{Heightfield, HfieldSpec};
+use crate::sim::Model;
 
 /// Name of the ground geom (and of the hfield asset) that [`Terrain::scene_xml`] adds.
 pub const TERRAIN_NAME: &str = "terrain";
@@ -316,15 +318,11 @@ pub enum TileKind {
 pub struct Terrain {
     cfg: TerrainConfig,
     seed: u64,
-    nx: usize,
-    ny: usize,
-    /// Row-major, row = y index, column = x index (MuJoCo's hfield order), metres.
-    heights: Vec<f32>,
+    /// The height grid, sample (0, 0) at (-border, -border).
+    field: Heightfield,
     kinds: Vec<TileKind>,
     /// level * num_types + type -> spawn point.
     origins: Vec<[f64; 3]>,
-    z_min: f64,
-    z_max: f64,
 }
 
 /// One tile under construction: heights in metres, index `b * nl + a`
@@ -494,21 +492,20 @@ impl Terrain {
                 origins[index] = [x, y, spawn_z];
             }
         }
-        let (mut z_min, mut z_max) = (0.0f64, 0.0f64);
-        for &z in &heights {
-            z_min = z_min.min(z as f64);
-            z_max = z_max.max(z as f64);
-        }
+        let b = cfg.border_size_m;
+        let field = Heightfield::new(
+            [-b, -b],
+            cfg.horizontal_scale_m,
+            (nx, ny),
+            heights,
+            spec(cfg),
+        );
         Terrain {
             cfg: cfg.clone(),
             seed,
-            nx,
-            ny,
-            heights,
+            field,
             kinds,
             origins,
-            z_min,
-            z_max,
         }
     }
 
@@ -530,45 +527,38 @@ impl Terrain {
     pub fn tile_kind(&self, terrain_type: usize) -> TileKind {
         self.kinds[terrain_type]
     }
+    /// The height grid (shared implementation with the evaluation ground).
+    pub fn heightfield(&self) -> &Heightfield {
+        &self.field
+    }
     /// Samples along x (hfield columns) and along y (hfield rows).
     pub fn grid_shape(&self) -> (usize, usize) {
-        (self.nx, self.ny)
+        self.field.grid_shape()
     }
     /// World (x, y) of sample (0, 0): (-border, -border).
     pub fn grid_origin_m(&self) -> [f64; 2] {
-        [-self.cfg.border_size_m, -self.cfg.border_size_m]
+        self.field.grid_origin_m()
     }
+    /// Spacing between samples, m.
     pub fn horizontal_scale_m(&self) -> f64 {
-        self.cfg.horizontal_scale_m
+        self.field.horizontal_scale_m()
     }
     /// Heights in metres, row-major, `heights_m()[iy * nx + ix]` at world
     /// (x0 + ix h, y0 + iy h) with (x0, y0) = [`Self::grid_origin_m`].
     pub fn heights_m(&self) -> &[f32] {
-        &self.heights
+        self.field.heights_m()
     }
     /// Height of sample (ix, iy), m.
     pub fn sample_height_m(&self, ix: usize, iy: usize) -> f64 {
-        self.heights[iy * self.nx + ix] as f64
+        self.field.sample_height_m(ix, iy)
     }
-    /// Lowest and highest ground, m.
+    /// Lowest and highest ground (the flat border's 0 included), m.
     pub fn height_range_m(&self) -> (f64, f64) {
-        (self.z_min, self.z_max)
+        self.field.height_range_m()
     }
-
-    /// Ground height at world (x, y), bilinear between samples; points outside
-    /// the grid take the nearest edge value (there is no ground there in MuJoCo).
-    /// MuJoCo triangulates each cell instead; the two agree on planar patches.
+    /// Ground height at world (x, y), m: see [`Heightfield::height_at`].
     pub fn height_at(&self, x_m: f64, y_m: f64) -> f64 {
-        let [x0, y0] = self.grid_origin_m();
-        let h = self.cfg.horizontal_scale_m;
-        let fx = ((x_m - x0) / h).clamp(0.0, (self.nx - 1) as f64);
-        let fy = ((y_m - y0) / h).clamp(0.0, (self.ny - 1) as f64);
-        let ix = (fx.floor() as usize).min(self.nx - 2);
-        let iy = (fy.floor() as usize).min(self.ny - 2);
-        let (tx, ty) = (fx - ix as f64, fy - iy as f64);
-        let z = |i: usize, j: usize| self.sample_height_m(i, j);
-        (1.0 - ty) * ((1.0 - tx) * z(ix, iy) + tx * z(ix + 1, iy))
-            + ty * ((1.0 - tx) * z(ix, iy + 1) + tx * z(ix + 1, iy + 1))
+        self.field.height_at(x_m, y_m)
     }
 
     /// Spawn point of tile (level, type): its centre, z = the highest ground
@@ -581,25 +571,6 @@ impl Terrain {
             self.cfg.num_types
         );
         self.origins[level * self.cfg.num_types + terrain_type]
-    }
-
-    /// (radius_x, radius_y, elevation, base) of the MuJoCo hfield, m.
-    fn hfield_size(&self) -> [f64; 4] {
-        let h = self.cfg.horizontal_scale_m;
-        let elevation = (self.z_max - self.z_min).max(self.cfg.vertical_scale_m);
-        [
-            (self.nx - 1) as f64 * h / 2.0,
-            (self.ny - 1) as f64 * h / 2.0,
-            elevation,
-            HFIELD_BASE_M,
-        ]
-    }
-
-    /// World position of the hfield geom (grid centre, z = lowest ground).
-    fn hfield_pos(&self) -> [f64; 3] {
-        let [x0, y0] = self.grid_origin_m();
-        let [rx, ry, _, _] = self.hfield_size();
-        [x0 + rx, y0 + ry, self.z_min]
     }
 
     /// The robot's MJCF text with the ground added before its final `</mujoco>`:
@@ -619,20 +590,11 @@ impl Terrain {
                  <geom name=\"{N}\" type=\"plane\" size=\"0 0 0.05\" {common}/>\n  \
                  </worldbody>\n"
             ),
-            TerrainKind::Rough => {
-                let [rx, ry, elev, base] = self.hfield_size();
-                let [px, py, pz] = self.hfield_pos();
-                let (nrow, ncol) = (self.ny, self.nx);
-                format!(
-                    "  <asset>\n    \
-                     <hfield name=\"{N}\" nrow=\"{nrow}\" ncol=\"{ncol}\" \
-                     size=\"{rx} {ry} {elev} {base}\"/>\n  \
-                     </asset>\n  <worldbody>\n    \
-                     <geom name=\"{N}\" type=\"hfield\" hfield=\"{N}\" pos=\"{px} {py} {pz}\" \
-                     {common}/>\n  \
-                     </worldbody>\n"
-                )
-            }
+            TerrainKind::Rough => format!(
+                "  <asset>\n    {}\n  </asset>\n  <worldbody>\n    {}\n  </worldbody>\n",
+                self.field.asset_xml(N),
+                self.field.geom_xml(N, common)
+            ),
         };
         Ok(format!(
             "{}{}{}",
@@ -649,35 +611,17 @@ impl Terrain {
         if self.cfg.kind == TerrainKind::Flat {
             return Ok(());
         }
-        let hf = model.id(ObjKind::Hfield, TERRAIN_NAME).ok_or_else(|| {
-            format!(
-                "the model has no heightfield named \"{TERRAIN_NAME}\" (not built by scene_xml?)"
-            )
-        })?;
-        let shape = model.hfield_shape(hf);
-        if shape != (self.ny, self.nx) {
-            return Err(format!(
-                "heightfield \"{TERRAIN_NAME}\" has {} x {} samples (rows x cols), terrain {} x {}",
-                shape.0, shape.1, self.ny, self.nx
-            ));
-        }
-        let want = self.hfield_size();
-        let got = model.hfield_size(hf);
-        if want
-            .iter()
-            .zip(got.iter())
-            .any(|(w, g)| (w - g).abs() > 1e-9 * w.abs().max(1.0))
-        {
-            return Err(format!(
-                "heightfield \"{TERRAIN_NAME}\" has size {got:?}, the terrain {want:?}"
-            ));
-        }
-        let elevation = want[2];
-        let z_min = self.z_min;
-        for (dst, &z) in model.hfield_data_mut(hf).iter_mut().zip(&self.heights) {
-            *dst = ((z as f64 - z_min) / elevation).clamp(0.0, 1.0) as f32;
-        }
-        Ok(())
+        self.field.upload(model, TERRAIN_NAME)
+    }
+}
+
+/// The hfield settings of `cfg`'s grid: a 1 m block, elevation at least one
+/// height quantum, and a range that always spans the flat border's z = 0.
+fn spec(cfg: &TerrainConfig) -> HfieldSpec {
+    HfieldSpec {
+        base_m: HFIELD_BASE_M,
+        min_elevation_m: cfg.vertical_scale_m,
+        range_spans_zero: true,
     }
 }
 
