@@ -111,7 +111,11 @@ fn kill_9_at_random_moments_never_corrupts_and_the_run_resumes() {
         let wait = Duration::from_millis(rng.gen_range(150..900));
         while start.elapsed() < wait {
             if let Ok(Some(status)) = child.try_wait() {
-                panic!("run {kill} exited early: {status:?}");
+                let mut err = String::new();
+                if let Some(mut e) = child.stderr.take() {
+                    let _ = std::io::Read::read_to_string(&mut e, &mut err);
+                }
+                panic!("run {kill} exited early: {status:?}: {err}");
             }
             std::thread::sleep(Duration::from_millis(10));
         }

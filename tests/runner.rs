@@ -260,6 +260,36 @@ fn resume_after_a_crash_continues_from_the_newest_readable_checkpoint() {
 }
 
 /// Rough-ground checkpoints carry the curriculum; resuming keeps it going.
+/// A run killed after its first metrics row but before its first checkpoint
+/// has nothing to resume from: `--resume` starts it again from its
+/// config.toml (and a run with neither is refused with the reason).
+#[test]
+fn resume_of_a_run_stopped_before_its_first_checkpoint_starts_it_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut cfg = tiny_config(CriticKind::Scalar);
+    cfg.runner.iterations = 2;
+    train(cfg.clone(), &run, false, no_stop(), &mut ()).unwrap();
+    std::fs::remove_file(run.join(LATEST)).unwrap();
+    std::fs::remove_dir_all(run.join("checkpoints")).unwrap();
+    // resuming passes a config with other runner settings only
+    let mut more = TrainConfig::default();
+    more.runner.iterations = 3;
+    let s = train(more, &run, true, no_stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 3);
+    let its: Vec<String> = metric_rows(&run).into_iter().map(|r| r[0].clone()).collect();
+    assert_eq!(its, ["1", "2", "3"], "old rows replaced");
+    let stored = load_policy(&run.join(LATEST)).unwrap().config;
+    assert_eq!(stored.runner.num_envs, cfg.runner.num_envs, "its own config");
+
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let e = train(TrainConfig::default(), &empty, true, no_stop(), &mut ())
+        .err()
+        .unwrap();
+    assert!(format!("{e:#}").contains("no readable checkpoint"), "{e:#}");
+}
+
 #[test]
 fn rough_checkpoints_store_every_envs_terrain_level() {
     let dir = tempfile::tempdir().unwrap();

@@ -89,10 +89,15 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
         (Some(dir), _) if !world.is_root() => (TrainConfig::default(), dir.clone(), true),
         (Some(dir), _) => {
             // what the run was started with; only runner settings may change
-            let (_, loaded) = RunDir { root: dir.clone() }
-                .resume_point()
-                .with_context(|| format!("cannot resume {}", dir.display()))?;
-            let mut cfg = loaded.config;
+            let run = RunDir { root: dir.clone() };
+            let mut cfg = match run.resume_point() {
+                Ok((_, loaded)) => loaded.config,
+                // stopped before its first checkpoint: `train` starts it again
+                Err(e) => run
+                    .config_before_first_checkpoint()?
+                    .ok_or(e)
+                    .with_context(|| format!("cannot resume {}", dir.display()))?,
+            };
             apply_runner_overrides(&mut cfg, args);
             cfg.validate().context("after command-line overrides")?;
             (cfg, dir.clone(), true)

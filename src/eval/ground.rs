@@ -2,20 +2,27 @@
 //! platform, or the race course, as one MuJoCo heightfield (plus a plane under it
 //! as a safety net where the field ends).
 //!
-//! Heights use the conventions of `env::terrain`: metres, row-major with the row
-//! along y and the column along x (`heights_m()[iy * nx + ix]` is the point
-//! `origin + (ix h, iy h)`), which is MuJoCo's hfield layout.
+//! The grid is a [`Heightfield`], the
+//! training terrain's own: metres, row-major with the row along y and the column
+//! along x (`heights_m()[iy * nx + ix]` is the point `origin + (ix h, iy h)`),
+//! which is MuJoCo's hfield layout.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::sim::{Model, ObjKind};
+use crate::env::heightfield::{Heightfield, HfieldSpec};
+use crate::sim::Model;
 
 /// Name of the ground geom (and of its hfield asset) in scenario scenes.
 pub const GROUND_NAME: &str = "ground";
-/// Depth of the solid block under the heightfield (MuJoCo's hfield `base_z`), m.
-const HFIELD_BASE_M: f64 = 0.5;
+/// The hfield of every ground: a 0.5 m block, at least 1 mm of elevation, and
+/// the range of the samples alone.
+const HFIELD_SPEC: HfieldSpec = HfieldSpec {
+    base_m: 0.5,
+    min_elevation_m: 0.001,
+    range_spans_zero: false,
+};
 /// The safety-net plane lies this far under the lowest ground, m.
 const NET_DEPTH_M: f64 = 0.05;
 /// Collision bits and look of every ground geom.
@@ -131,11 +138,8 @@ impl Default for RaceTrackParams {
 /// A heightfield ground.
 #[derive(Debug, Clone)]
 pub struct Ground {
-    origin_m: [f64; 2],
-    h: f64,
-    nx: usize,
-    ny: usize,
-    heights: Vec<f32>,
+    /// The height grid.
+    field: Heightfield,
     /// Race course stretches (empty for other grounds).
     segments: Vec<Segment>,
 }
@@ -143,16 +147,8 @@ pub struct Ground {
 impl Ground {
     /// A flat field of `nx x ny` samples `h` apart, sample (0, 0) at `origin_m`.
     pub fn flat(origin_m: [f64; 2], h: f64, nx: usize, ny: usize) -> Ground {
-        assert!(
-            nx >= 2 && ny >= 2 && h > 0.0,
-            "a heightfield needs 2 x 2 samples"
-        );
         Ground {
-            origin_m,
-            h,
-            nx,
-            ny,
-            heights: vec![0.0; nx * ny],
+            field: Heightfield::flat(origin_m, h, (nx, ny), HFIELD_SPEC),
             segments: Vec::new(),
         }
     }
@@ -220,10 +216,8 @@ impl Ground {
         rng: &mut ChaCha8Rng,
     ) {
         let v = p.vertical_scale_m;
-        let (ya, yb) = (
-            self.origin_m[1],
-            self.origin_m[1] + (self.ny - 1) as f64 * self.h,
-        );
+        let (_, ny) = self.grid_shape();
+        let (ya, yb) = (self.point(0, 0)[1], self.point(0, ny - 1)[1]);
         match kind {
             SegmentKind::Flat => {}
             SegmentKind::Platform => self.fill_box(x0, x1, ya, yb, p.drop_height_m, v),
@@ -236,7 +230,7 @@ impl Ground {
                     v,
                     rng,
                 );
-                for iy in 0..self.ny {
+                for iy in 0..ny {
                     for ix in self.columns(x0, x1) {
                         let [x, y] = self.point(ix, iy);
                         self.set(ix, iy, noise.at(x, y), v);
@@ -262,14 +256,17 @@ impl Ground {
 
     /// Column indices with x in [x0, x1).
     fn columns(&self, x0: f64, x1: f64) -> std::ops::Range<usize> {
-        let a = ((x0 - self.origin_m[0]) / self.h).ceil().max(0.0) as usize;
-        let b = ((x1 - self.origin_m[0]) / self.h).ceil().max(0.0) as usize;
-        a.min(self.nx)..b.min(self.nx)
+        let [ox, _] = self.grid_origin_m();
+        let h = self.horizontal_scale_m();
+        let nx = self.grid_shape().0;
+        let a = ((x0 - ox) / h).ceil().max(0.0) as usize;
+        let b = ((x1 - ox) / h).ceil().max(0.0) as usize;
+        a.min(nx)..b.min(nx)
     }
 
     /// Sets the samples with x in [x0, x1), y in [y0, y1] to `z`.
     fn fill_box(&mut self, x0: f64, x1: f64, y0: f64, y1: f64, z: f64, v: f64) {
-        for iy in 0..self.ny {
+        for iy in 0..self.grid_shape().1 {
             let y = self.point(0, iy)[1];
             if y < y0 - 1e-9 || y > y1 + 1e-9 {
                 continue;
@@ -280,31 +277,34 @@ impl Ground {
         }
     }
 
+    /// Sets sample (ix, iy) to `z` m quantised to `v` m.
     fn set(&mut self, ix: usize, iy: usize, z: f64, v: f64) {
-        self.heights[iy * self.nx + ix] = ((z / v).round() * v) as f32;
+        self.field.set_height_m(ix, iy, (z / v).round() * v);
     }
 
+    /// The height grid (shared implementation with the training terrain).
+    pub fn heightfield(&self) -> &Heightfield {
+        &self.field
+    }
     /// World (x, y) of sample (ix, iy).
     pub fn point(&self, ix: usize, iy: usize) -> [f64; 2] {
-        [
-            self.origin_m[0] + ix as f64 * self.h,
-            self.origin_m[1] + iy as f64 * self.h,
-        ]
+        self.field.point_m(ix, iy)
     }
     /// (samples along x, samples along y).
     pub fn grid_shape(&self) -> (usize, usize) {
-        (self.nx, self.ny)
+        self.field.grid_shape()
     }
     /// World (x, y) of sample (0, 0).
     pub fn grid_origin_m(&self) -> [f64; 2] {
-        self.origin_m
+        self.field.grid_origin_m()
     }
+    /// Spacing between samples, m.
     pub fn horizontal_scale_m(&self) -> f64 {
-        self.h
+        self.field.horizontal_scale_m()
     }
     /// Heights (m), `heights_m()[iy * nx + ix]`.
     pub fn heights_m(&self) -> &[f32] {
-        &self.heights
+        self.field.heights_m()
     }
     /// The race course's stretches (empty for other grounds).
     pub fn segments(&self) -> &[Segment] {
@@ -312,76 +312,32 @@ impl Ground {
     }
     /// Lowest and highest ground, m.
     pub fn height_range_m(&self) -> (f64, f64) {
-        let mut lo = f64::INFINITY;
-        let mut hi = f64::NEG_INFINITY;
-        for &z in &self.heights {
-            lo = lo.min(z as f64);
-            hi = hi.max(z as f64);
-        }
-        (lo, hi)
+        self.field.height_range_m()
     }
-
-    /// Ground height at world (x, y), bilinear between samples (nearest edge
-    /// value outside the field).
+    /// Ground height at world (x, y), m: see [`Heightfield::height_at`].
     pub fn height_at(&self, x: f64, y: f64) -> f64 {
-        let fx = ((x - self.origin_m[0]) / self.h).clamp(0.0, (self.nx - 1) as f64);
-        let fy = ((y - self.origin_m[1]) / self.h).clamp(0.0, (self.ny - 1) as f64);
-        let ix = (fx.floor() as usize).min(self.nx - 2);
-        let iy = (fy.floor() as usize).min(self.ny - 2);
-        let (tx, ty) = (fx - ix as f64, fy - iy as f64);
-        let z = |i: usize, j: usize| self.heights[j * self.nx + i] as f64;
-        (1.0 - ty) * ((1.0 - tx) * z(ix, iy) + tx * z(ix + 1, iy))
-            + ty * ((1.0 - tx) * z(ix, iy + 1) + tx * z(ix + 1, iy + 1))
-    }
-
-    fn hfield_size(&self) -> [f64; 4] {
-        let (lo, hi) = self.height_range_m();
-        [
-            (self.nx - 1) as f64 * self.h / 2.0,
-            (self.ny - 1) as f64 * self.h / 2.0,
-            (hi - lo).max(0.001),
-            HFIELD_BASE_M,
-        ]
+        self.field.height_at(x, y)
     }
 
     /// `<asset>` and `<worldbody>` MJCF of this ground: the hfield geom
     /// [`GROUND_NAME`] and a plane under it.
     pub fn xml(&self) -> (String, String) {
-        let [rx, ry, elev, base] = self.hfield_size();
-        let (lo, _) = self.height_range_m();
-        let (px, py) = (self.origin_m[0] + rx, self.origin_m[1] + ry);
         let n = GROUND_NAME;
-        let asset = format!(
-            "    <hfield name=\"{n}\" nrow=\"{}\" ncol=\"{}\" size=\"{rx} {ry} {elev} {base}\"/>",
-            self.ny, self.nx
-        );
+        let (lo, _) = self.height_range_m();
+        let asset = format!("    {}", self.field.asset_xml(n));
         let world = format!(
-            "    <geom name=\"{n}\" type=\"hfield\" hfield=\"{n}\" pos=\"{px} {py} {lo}\" {GROUND_ATTRS}/>\n    \
+            "    {}\n    \
              <geom name=\"{n}_net\" type=\"plane\" size=\"0 0 0.05\" pos=\"0 0 {}\" {GROUND_ATTRS}/>",
+            self.field.geom_xml(n, GROUND_ATTRS),
             lo - NET_DEPTH_M
         );
         (asset, world)
     }
 
-    /// Writes the heights into the model's hfield [`GROUND_NAME`].
+    /// Writes the heights into the model's hfield [`GROUND_NAME`]; refuses a
+    /// model whose hfield does not have this ground's shape and size.
     pub fn upload(&self, model: &mut Model) -> Result<(), String> {
-        let hf = model
-            .id(ObjKind::Hfield, GROUND_NAME)
-            .ok_or_else(|| format!("the scene has no heightfield named \"{GROUND_NAME}\""))?;
-        if model.hfield_shape(hf) != (self.ny, self.nx) {
-            return Err(format!(
-                "heightfield \"{GROUND_NAME}\" has shape {:?}, the ground ({}, {})",
-                model.hfield_shape(hf),
-                self.ny,
-                self.nx
-            ));
-        }
-        let (lo, _) = self.height_range_m();
-        let elev = self.hfield_size()[2];
-        for (dst, &z) in model.hfield_data_mut(hf).iter_mut().zip(&self.heights) {
-            *dst = ((z as f64 - lo) / elev).clamp(0.0, 1.0) as f32;
-        }
-        Ok(())
+        self.field.upload(model, GROUND_NAME)
     }
 }
 

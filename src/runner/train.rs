@@ -83,6 +83,17 @@ impl RunDir {
         found.into_iter().map(|(_, p)| p).collect()
     }
 
+    /// The config of a run stopped before it wrote any checkpoint (nothing to
+    /// resume, but the run can start again), or `None` when it has a checkpoint
+    /// file or no `config.toml`.
+    pub fn config_before_first_checkpoint(&self) -> Result<Option<TrainConfig>> {
+        let stored = self.root.join("config.toml");
+        if self.latest().exists() || !self.numbered_checkpoints().is_empty() || !stored.exists() {
+            return Ok(None);
+        }
+        TrainConfig::from_toml_file(&stored).map(Some)
+    }
+
     /// The checkpoint to resume from: `latest`, or when it is missing or
     /// unreadable the newest numbered checkpoint that loads.
     pub fn resume_point(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
@@ -232,22 +243,36 @@ pub fn train_in(
     } else {
         None
     };
-    let (mut cfg, mut learner, mut progress) = if resume {
-        // rank 0 picks and reads the checkpoint; every rank loads the same bytes
-        let (mut path, mut bytes) = (PathBuf::new(), Vec::new());
+    let (mut cfg, mut resume) = (cfg, resume);
+    // rank 0 picks and reads the checkpoint; every rank loads the same bytes
+    let (mut path, mut bytes) = (PathBuf::new(), Vec::new());
+    if resume {
         if root {
-            path = dir.resume_point()?.0;
-            bytes = std::fs::read(&path)
-                .with_context(|| format!("reading checkpoint {}", path.display()))?;
+            match dir.resume_point() {
+                Ok((p, _)) => {
+                    bytes = std::fs::read(&p)
+                        .with_context(|| format!("reading checkpoint {}", p.display()))?;
+                    path = p;
+                }
+                // stopped before its first checkpoint: start it again from its config
+                Err(e) => {
+                    let Some(stored) = dir.config_before_first_checkpoint()? else {
+                        return Err(e);
+                    };
+                    println!(
+                        "{} was stopped before its first checkpoint: starting it again from its config.toml",
+                        dir.root.display()
+                    );
+                    cfg = keep_runner_settings(stored, &cfg);
+                }
+            }
         }
         world.broadcast_bytes(&mut bytes);
+        resume = !bytes.is_empty();
+    }
+    let (mut cfg, mut learner, mut progress) = if resume {
         let loaded = load_policy_bytes(&bytes, &path)?;
-        let mut stored = loaded.config;
-        // runner settings that do not change what is learned may differ on resume
-        stored.runner.iterations = cfg.runner.iterations;
-        stored.runner.threads = cfg.runner.threads;
-        stored.runner.save_interval = cfg.runner.save_interval;
-        stored.runner.log_interval = cfg.runner.log_interval;
+        let stored = keep_runner_settings(loaded.config, &cfg);
         if root {
             println!(
                 "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
@@ -277,16 +302,7 @@ pub fn train_in(
                 dir.root.display()
             );
         }
-        let learner = Learner::with_layout(
-            &cfg.env.obs_layout(),
-            ACT_DIM,
-            &cfg.learner,
-            cfg.runner.seed,
-        )?;
-        let progress = Progress {
-            rng_seed: cfg.runner.seed ^ 0xA11_0C47,
-            ..Default::default()
-        };
+        let (learner, progress) = fresh_start(&cfg)?;
         (cfg, learner, progress)
     };
     if ranks > 1 {
@@ -295,6 +311,10 @@ pub fn train_in(
         world.broadcast_bytes(&mut toml);
         cfg = TrainConfig::from_toml_str(&String::from_utf8_lossy(&toml))
             .context("the config broadcast by rank 0")?;
+        if !resume && !root {
+            // networks of rank 0's config (a restarted run's stored one)
+            (learner, progress) = fresh_start(&cfg)?;
+        }
         broadcast_learner_state(world, &mut learner)?;
         if cfg.learner.adaptation.is_some() && root {
             println!("note: RMA phase 2 (the adaptation module) runs in one process: after phase 1, resume the run without mpirun");
@@ -559,6 +579,31 @@ pub fn train_in(
         last_checkpoint,
         final_episode_stats: last_stats,
     })
+}
+
+/// The networks and runner state of a run's iteration 0.
+fn fresh_start(cfg: &TrainConfig) -> Result<(Learner, Progress)> {
+    let learner = Learner::with_layout(
+        &cfg.env.obs_layout(),
+        ACT_DIM,
+        &cfg.learner,
+        cfg.runner.seed,
+    )?;
+    let progress = Progress {
+        rng_seed: cfg.runner.seed ^ 0xA11_0C47,
+        ..Default::default()
+    };
+    Ok((learner, progress))
+}
+
+/// A stored run config with this invocation's runner settings, the ones that
+/// do not change what is learned (they may differ on resume).
+fn keep_runner_settings(mut stored: TrainConfig, now: &TrainConfig) -> TrainConfig {
+    stored.runner.iterations = now.runner.iterations;
+    stored.runner.threads = now.runner.threads;
+    stored.runner.save_interval = now.runner.save_interval;
+    stored.runner.log_interval = now.runner.log_interval;
+    stored
 }
 
 /// " on N ranks" for N > 1.
