@@ -277,10 +277,16 @@ fn resume_of_a_run_stopped_before_its_first_checkpoint_starts_it_again() {
     more.runner.iterations = 3;
     let s = train(more, &run, true, no_stop(), &mut ()).unwrap();
     assert_eq!(s.iterations_done, 3);
-    let its: Vec<String> = metric_rows(&run).into_iter().map(|r| r[0].clone()).collect();
+    let its: Vec<String> = metric_rows(&run)
+        .into_iter()
+        .map(|r| r[0].clone())
+        .collect();
     assert_eq!(its, ["1", "2", "3"], "old rows replaced");
     let stored = load_policy(&run.join(LATEST)).unwrap().config;
-    assert_eq!(stored.runner.num_envs, cfg.runner.num_envs, "its own config");
+    assert_eq!(
+        stored.runner.num_envs, cfg.runner.num_envs,
+        "its own config"
+    );
 
     let empty = dir.path().join("empty");
     std::fs::create_dir_all(&empty).unwrap();
@@ -288,6 +294,32 @@ fn resume_of_a_run_stopped_before_its_first_checkpoint_starts_it_again() {
         .err()
         .unwrap();
     assert!(format!("{e:#}").contains("no readable checkpoint"), "{e:#}");
+}
+
+/// `rall eval falls`: every logged state is either before a fall or elsewhere,
+/// and no more states precede falls than `window` per fall.
+#[test]
+fn the_states_before_falls_are_counted_once_each() {
+    let (_dir, run) = trained_run(CriticKind::Iqn);
+    let p = load_policy(&run.join(LATEST)).unwrap();
+    // a robot that barely tilts "falls": falls happen within the test
+    let mut cfg = p.config.clone();
+    cfg.env.episode.max_tilt_rad = 0.02;
+    cfg.env.episode.length_s = 5.0;
+    let (robots, steps, window) = (6, 80, 5);
+    let r = rall::eval::critic_before_falls(
+        &p.learner,
+        &cfg,
+        None,
+        (robots, steps, window),
+        2,
+        3,
+    )
+    .unwrap();
+    assert_eq!(r.before_fall.states + r.elsewhere.states, robots * steps);
+    assert!(r.falls > 0, "{r:?}");
+    assert!(r.before_fall.states > 0 && r.before_fall.states <= r.falls * window);
+    assert!(r.elsewhere.iqr.is_finite() && r.before_fall.iqr.is_finite());
 }
 
 #[test]

@@ -32,6 +32,31 @@ pub enum EvalCommand {
     Platform(PlatformArgs),
     /// Race-track returns (quantiles 0.25/0.5/0.75) per policy and for the IQR meta controller.
     Race(RaceArgs),
+    /// The critic's value quantiles and IQR in the last steps before falls against
+    /// everywhere else, in the checkpoint's own training env: does the
+    /// distribution's lower tail move, does the IQR rise, before the robot falls?
+    Falls(FallsArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct FallsArgs {
+    /// Checkpoint (.safetensors) written by `rall train`; several compare them.
+    #[arg(long, required = true)]
+    pub checkpoint: Vec<PathBuf>,
+    /// Robots walking at once.
+    #[arg(long, default_value_t = 256)]
+    pub robots: usize,
+    /// Policy steps (50 Hz) each robot walks (episodes restart after a fall).
+    #[arg(long, default_value_t = 750)]
+    pub steps: usize,
+    /// Steps before a fall that count as "before a fall" (25 = 0.5 s).
+    #[arg(long, default_value_t = 25)]
+    pub window: usize,
+    #[arg(long, default_value_t = 4242)]
+    pub seed: u64,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
 }
 
 /// Options shared by the robustness benchmarks.
@@ -159,7 +184,50 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         EvalCommand::Ttf(a) => ttf(a),
         EvalCommand::Platform(a) => platform(a),
         EvalCommand::Race(a) => race(a),
+        EvalCommand::Falls(a) => falls(a),
     }
+}
+
+fn falls(a: &FallsArgs) -> Result<()> {
+    anyhow::ensure!(
+        a.robots > 0 && a.steps > 0 && a.window > 0,
+        "--robots, --steps and --window must be at least 1"
+    );
+    println!(
+        "{} robots x {} steps in each checkpoint's training env; \"before a fall\" = the last {} steps of an episode that ended in a fall",
+        a.robots, a.steps, a.window
+    );
+    println!(
+        "| checkpoint | iteration | falls | states | Z_0.01 | Z_0.05 | Z_0.25 | Z_0.5 | Z_0.75 | Z_0.95 | IQR |"
+    );
+    println!("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
+    for path in &a.checkpoint {
+        let p = load_policy(path)?;
+        let r = crate::eval::critic_before_falls(
+            &p.learner,
+            &p.config,
+            p.progress.terrain_levels.as_deref(),
+            (a.robots, a.steps, a.window),
+            worker_threads(a.threads),
+            a.seed,
+        )?;
+        for (what, m) in [
+            ("before a fall", &r.before_fall),
+            ("elsewhere", &r.elsewhere),
+        ] {
+            let q: Vec<String> = m.quantiles.iter().map(|v| format!("{v:.3}")).collect();
+            println!(
+                "| {} | {} | {} | {what}: {} | {} | {:.3} |",
+                path.display(),
+                p.progress.iteration,
+                r.falls,
+                m.states,
+                q.join(" | "),
+                m.iqr
+            );
+        }
+    }
+    Ok(())
 }
 
 fn tracking(a: &TrackingArgs) -> Result<()> {

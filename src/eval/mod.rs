@@ -6,6 +6,7 @@
 //!   (table II); [`race`]: race-track returns and the IQR meta controller (fig. 4).
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
 
+pub mod falls;
 pub mod ground;
 pub mod mjcf;
 pub mod platform;
@@ -16,6 +17,7 @@ pub mod scenario;
 pub mod tracking;
 pub mod ttf;
 
+pub use falls::{critic_before_falls, FallReport, QuantileMeans, FALL_TAUS};
 pub use platform::{evaluate_platform, DropOutcome, DropWatch, PlatformOptions, PlatformReport};
 pub use race::{evaluate_race, MetaArg, MetaConfig, MetaSwitch, RaceOptions, RaceReport};
 pub use rollout::{run_first_episodes, FirstEpisode, NamedPolicy, ScenarioRun};
