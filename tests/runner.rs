@@ -307,15 +307,8 @@ fn the_states_before_falls_are_counted_once_each() {
     cfg.env.episode.max_tilt_rad = 0.02;
     cfg.env.episode.length_s = 5.0;
     let (robots, steps, window) = (6, 80, 5);
-    let r = rall::eval::critic_before_falls(
-        &p.learner,
-        &cfg,
-        None,
-        (robots, steps, window),
-        2,
-        3,
-    )
-    .unwrap();
+    let r = rall::eval::critic_before_falls(&p.learner, &cfg, None, (robots, steps, window), 2, 3)
+        .unwrap();
     assert_eq!(r.before_fall.states + r.elsewhere.states, robots * steps);
     assert!(r.falls > 0, "{r:?}");
     assert!(r.before_fall.states > 0 && r.before_fall.states <= r.falls * window);
