@@ -162,8 +162,8 @@ fn comm(a: &CommBenchArgs) -> Result<()> {
         p,
         a.config.display(),
         bytes / 1e6,
-        cfg.learner.ppo.num_learning_epochs,
-        cfg.learner.ppo.num_mini_batches
+        epochs,
+        n_mb
     );
     println!(
         "measured (median of {}): 1 float {:.1} us, gradient {:.3} ms ({:.2} GB/s effective); per iteration {:.1} ms",

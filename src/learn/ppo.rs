@@ -198,6 +198,8 @@ pub struct Workspace {
     targets: TargetScratch,
     /// Gradients and statistics packed for one sum across ranks.
     reduce: Vec<f32>,
+    /// Every mini-batch's advantage moments, summed across ranks.
+    moments: Vec<f64>,
 }
 
 /// Buffers of the once-per-update critic pass over the whole rollout (kept:
@@ -413,6 +415,7 @@ pub fn update(
         mb,
         shards,
         reduce,
+        moments,
         ..
     } = ws;
     let ranks = comm.ranks();
@@ -422,13 +425,12 @@ pub fn update(
     // with single-threaded kernels (measured faster than splitting every GEMM)
     shards.resize_with(rayon::current_num_threads().max(1), Shard::default);
     let global_norm = cfg.normalize_advantage_per_mini_batch && ranks > 1;
-    let mut mb_moments = Vec::new();
     for _ in 0..cfg.num_learning_epochs {
         idx.shuffle(rng);
         if global_norm {
             // every mini-batch's advantage moments over all ranks: one sum per epoch
             time.gather_s += lap();
-            mb_moments = advantage_moments(&tg.adv, idx, n_mb, comm);
+            advantage_moments(moments, &tg.adv, idx, n_mb, comm);
             time.comm_s += lap();
         }
         for k in 0..n_mb {
@@ -443,7 +445,7 @@ pub fn update(
             gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
             let adv = &mut mb.adv;
             if global_norm {
-                normalize_with(adv, &mb_moments[3 * k..3 * k + 3]);
+                normalize_with(adv, &moments[3 * k..3 * k + 3]);
             } else if cfg.normalize_advantage_per_mini_batch && b > 1 {
                 let mean = adv.iter().sum::<f32>() / b as f32;
                 let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
@@ -575,12 +577,19 @@ pub fn update(
     Ok(stats)
 }
 
-/// `[sum, sum of squares, count]` of the advantages of each of the `n_mb`
+/// `m <- [sum, sum of squares, count]` of the advantages of each of the `n_mb`
 /// mini-batches of `idx`, summed over the ranks (each rank's mini-batch k is
 /// its share of the global mini-batch k).
-fn advantage_moments(adv: &[f32], idx: &[usize], n_mb: usize, comm: &dyn Collective) -> Vec<f64> {
+fn advantage_moments(
+    m: &mut Vec<f64>,
+    adv: &[f32],
+    idx: &[usize],
+    n_mb: usize,
+    comm: &dyn Collective,
+) {
     let total = idx.len();
-    let mut m = vec![0.0f64; 3 * n_mb];
+    m.clear();
+    m.resize(3 * n_mb, 0.0);
     for k in 0..n_mb {
         let batch = &idx[k * total / n_mb..(k + 1) * total / n_mb];
         for &i in batch {
@@ -590,8 +599,7 @@ fn advantage_moments(adv: &[f32], idx: &[usize], n_mb: usize, comm: &dyn Collect
         }
         m[3 * k + 2] = batch.len() as f64;
     }
-    comm.sum_f64(&mut m);
-    m
+    comm.sum_f64(m);
 }
 
 /// Normalises this rank's share of a global mini-batch to that batch's mean

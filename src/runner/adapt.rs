@@ -38,7 +38,6 @@ fn add_history(
     dir: &RunDir,
     cfg: &mut TrainConfig,
     learner: &mut Learner,
-    progress: &Progress,
     envs: &mut VecEnv,
     obs: &mut Vec<f32>,
     world: &PhaseWorld,
@@ -63,8 +62,9 @@ fn add_history(
         world.threads,
         world.env_seed ^ 0xADA9,
     )?;
-    if let Some(levels) = &progress.terrain_levels {
-        venv.restore_terrain_levels(levels)
+    // phase 1's live levels (a checkpoint's stored ones may hold every MPI rank's)
+    if let Some(levels) = envs.terrain_levels() {
+        venv.restore_terrain_levels(&levels)
             .context("restoring the terrain curriculum for phase 2")?;
     }
     *obs = venv.batch().obs.clone();
@@ -97,7 +97,7 @@ pub(super) fn adaptation_phase(
         return Ok((false, None));
     }
     if cfg.env.obs_layout().range(&a.input).is_none() {
-        add_history(dir, cfg, learner, progress, envs, obs, world)?;
+        add_history(dir, cfg, learner, envs, obs, world)?;
     }
     let r = &cfg.runner;
     let cfg = &*cfg;

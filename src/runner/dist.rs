@@ -213,15 +213,16 @@ mod mpi_world {
         }
 
         pub fn sum_f32(&self, v: &mut [f32]) {
-            let mut send = self.send_f32.borrow_mut();
-            send.clear();
-            send.extend_from_slice(v);
-            self.world
-                .all_reduce_into(&send[..], v, SystemOperation::sum());
+            self.sum_in_place(&self.send_f32, v);
         }
 
         pub fn sum_f64(&self, v: &mut [f64]) {
-            let mut send = self.send_f64.borrow_mut();
+            self.sum_in_place(&self.send_f64, v);
+        }
+
+        /// `v <- sum over ranks of v` through the kept send buffer `send`.
+        fn sum_in_place<T: Equivalence + Copy>(&self, send: &RefCell<Vec<T>>, v: &mut [T]) {
+            let mut send = send.borrow_mut();
             send.clear();
             send.extend_from_slice(v);
             self.world

@@ -52,9 +52,7 @@ impl EpisodeStats {
         }
         s
     }
-}
 
-impl EpisodeStats {
     /// Sums that add across ranks: `[n, n x return, n x length, tracking x steps,
     /// falls, n x term...]` (see [`Self::from_sums`]).
     pub fn sums(&self) -> Vec<f64> {
@@ -90,9 +88,6 @@ impl EpisodeStats {
         }
         s
     }
-
-    /// Length of [`Self::sums`].
-    pub const SUMS_LEN: usize = 5 + NUM_REWARD_TERMS;
 }
 
 /// Where the collection's wall time went (seconds per iteration).

@@ -243,35 +243,40 @@ pub fn train_in(
     } else {
         None
     };
-    let (mut cfg, mut resume) = (cfg, resume);
-    // rank 0 picks and reads the checkpoint; every rank loads the same bytes
-    let (mut path, mut bytes) = (PathBuf::new(), Vec::new());
-    if resume {
-        if root {
-            match dir.resume_point() {
-                Ok((p, _)) => {
-                    bytes = std::fs::read(&p)
-                        .with_context(|| format!("reading checkpoint {}", p.display()))?;
-                    path = p;
-                }
-                // stopped before its first checkpoint: start it again from its config
-                Err(e) => {
-                    let Some(stored) = dir.config_before_first_checkpoint()? else {
-                        return Err(e);
-                    };
-                    println!(
-                        "{} was stopped before its first checkpoint: starting it again from its config.toml",
-                        dir.root.display()
-                    );
-                    cfg = keep_runner_settings(stored, &cfg);
-                }
+    let mut cfg = cfg;
+    // rank 0 picks and loads the checkpoint (none: the run starts again)
+    let (mut path, mut resumed) = (PathBuf::new(), None);
+    if resume && root {
+        match dir.resume_point() {
+            Ok((p, loaded)) => (path, resumed) = (p, Some(loaded)),
+            // stopped before its first checkpoint: start it again from its config
+            Err(e) => {
+                let Some(stored) = dir.config_before_first_checkpoint()? else {
+                    return Err(e);
+                };
+                println!(
+                    "{} was stopped before its first checkpoint: starting it again from its config.toml",
+                    dir.root.display()
+                );
+                cfg = keep_runner_settings(stored, &cfg);
             }
         }
-        world.broadcast_bytes(&mut bytes);
-        resume = !bytes.is_empty();
     }
-    let (mut cfg, mut learner, mut progress) = if resume {
-        let loaded = load_policy_bytes(&bytes, &path)?;
+    if resume && ranks > 1 {
+        // the other ranks load the same file's bytes (empty: no checkpoint)
+        let mut bytes = match &resumed {
+            Some(_) => std::fs::read(&path)
+                .with_context(|| format!("reading checkpoint {}", path.display()))?,
+            None => Vec::new(),
+        };
+        world.broadcast_bytes(&mut bytes);
+        if !root && !bytes.is_empty() {
+            path = PathBuf::from("<rank 0's checkpoint>");
+            resumed = Some(load_policy_bytes(&bytes, &path)?);
+        }
+    }
+    let resume = resumed.is_some();
+    let (mut cfg, mut learner, mut progress) = if let Some(loaded) = resumed {
         let stored = keep_runner_settings(loaded.config, &cfg);
         if root {
             println!(
@@ -391,6 +396,7 @@ pub fn train_in(
     let mut last_checkpoint = dir.latest();
     let wall_start = Instant::now() - std::time::Duration::from_secs_f64(progress.wall_s);
     let mut instabilities_before = envs.instabilities();
+    let fault = divergence_fault()?;
 
     while progress.iteration < r.iterations {
         // a signal on any rank stops all of them at the same iteration
@@ -439,7 +445,9 @@ pub fn train_in(
         let update: UpdateStats = learner.update_with(&rollout, world)?;
         let learn_s = t1.elapsed().as_secs_f64();
         ensure_finite(&update, &learner, progress.iteration + 1, &last_checkpoint)?;
-        inject_divergence_fault(rank, progress.iteration + 1, &mut learner)?;
+        if fault == Some((rank, progress.iteration + 1)) {
+            nudge_one_weight(&mut learner)?;
+        }
         // this iteration's statistics over all ranks
         let local_new = envs.instabilities() - instabilities_before;
         instabilities_before += local_new;
@@ -687,7 +695,8 @@ fn broadcast_learner_state(world: &World, learner: &mut Learner) -> Result<()> {
 /// Compares the ranks' learner state; a divergence stops every rank, naming
 /// the ranks that differ from rank 0.
 fn check_same_state(world: &World, learner: &Learner, iteration: usize) -> Result<()> {
-    let hash = hash_f32(learner.state().iter().flat_map(|t| t.data.clone()));
+    let state = learner.state();
+    let hash = hash_f32(state.iter().flat_map(|t| t.data.iter().copied()));
     let hashes = world.all_gather_u64(hash);
     let bad = diverged_ranks(&hashes);
     if bad.is_empty() {
@@ -699,23 +708,25 @@ fn check_same_state(world: &World, learner: &Learner, iteration: usize) -> Resul
 }
 
 /// Fault injection for the divergence check's test: `RALL_FAULT_PERTURB=<rank>:<iteration>`
-/// nudges one weight of that rank after that iteration's update.
-fn inject_divergence_fault(rank: usize, iteration: usize, learner: &mut Learner) -> Result<()> {
+/// asks that rank to nudge one weight after that iteration's update.
+fn divergence_fault() -> Result<Option<(usize, usize)>> {
     let Ok(spec) = std::env::var("RALL_FAULT_PERTURB") else {
-        return Ok(());
+        return Ok(None);
     };
     let target = spec
         .split_once(':')
         .and_then(|(r, i)| Some((r.parse::<usize>().ok()?, i.parse::<usize>().ok()?)));
-    let Some((r, i)) = target else {
-        anyhow::bail!("RALL_FAULT_PERTURB={spec:?}: expected <rank>:<iteration>");
-    };
-    if (r, i) == (rank, iteration) {
-        let mut state = learner.state();
-        state[0].data[0] += 1e-3;
-        learner.load_state(&state)?;
+    match target {
+        Some(t) => Ok(Some(t)),
+        None => anyhow::bail!("RALL_FAULT_PERTURB={spec:?}: expected <rank>:<iteration>"),
     }
-    Ok(())
+}
+
+/// Adds 1e-3 to the first weight (the injected divergence).
+fn nudge_one_weight(learner: &mut Learner) -> Result<()> {
+    let mut state = learner.state();
+    state[0].data[0] += 1e-3;
+    learner.load_state(&state)
 }
 
 /// Writes the checkpoints (rank 0) with every rank's terrain levels.
