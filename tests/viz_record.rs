@@ -163,6 +163,16 @@ fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
         "{:?}",
         trunk.components
     );
+    // What the 3D view's eye tracks: rerun tracks an entity's own geometry, so the
+    // followed entity carries points (under the trunk, so they move with it).
+    let follow = s.entity(viz::FOLLOWED_ENTITY).expect("followed entity");
+    assert!(follow.static_rows >= 1 && follow.temporal_rows == 0);
+    assert!(
+        follow.components.iter().any(|c| c.starts_with("Points3D")),
+        "{:?}",
+        follow.components
+    );
+    assert!(viz::FOLLOWED_ENTITY.starts_with("world/robot/trunk/"));
     let foot = s.entity("world/robot/FR_foot/FR_foot").expect("foot geom");
     assert!(
         foot.components

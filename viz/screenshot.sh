@@ -36,7 +36,13 @@ display=99
 while [ -e "/tmp/.X11-unix/X$display" ] || [ -e "/tmp/.X$display-lock" ]; do
   display=$((display + 1))
 done
-Xvfb ":$display" -screen 0 "${size}x24" -extension Composite >/dev/null 2>&1 &
+# The screen is twice the window's size (plus a pixel): X starts the pointer at the
+# screen's centre, just outside the window's bottom-right corner, so no hover
+# tooltip covers the 3D view (xdotool cannot move Xvfb's pointer).
+width="${size%x*}"
+height="${size#*x}"
+screen="$((2 * width + 2))x$((2 * height + 2))"
+Xvfb ":$display" -screen 0 "${screen}x24" -extension Composite >/dev/null 2>&1 &
 xvfb_pid=$!
 trap 'kill "$xvfb_pid" 2>/dev/null || true' EXIT
 for _ in $(seq 50); do

@@ -47,6 +47,11 @@ pub struct PlayArgs {
     /// Stream to a running viewer (default 127.0.0.1:9876; or rerun+http://HOST:PORT/proxy).
     #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "127.0.0.1:9876")]
     pub connect: Option<String>,
+    /// Open the recording at its last frame (the viewer follows the latest data)
+    /// instead of playing it from the start: where the episode ended, or a screenshot
+    /// of it (`viz/screenshot.sh`).
+    #[arg(long)]
+    pub open_at_end: bool,
     /// Write the viewer layouts (rall-play.rbl, rall-train.rbl) into DIR and exit.
     #[arg(long, value_name = "DIR")]
     pub write_blueprints: Option<PathBuf>,
@@ -100,7 +105,11 @@ pub fn run(args: &PlayArgs) -> Result<()> {
         checkpoint.display(),
         loaded.progress.iteration
     );
-    let rec = viz::open_recording(viz::PLAY_APP_ID, &name, &target, viz::play_blueprint())?;
+    let layout = match args.open_at_end {
+        true => viz::play_blueprint().opened_at_end(),
+        false => viz::play_blueprint(),
+    };
+    let rec = viz::open_recording(viz::PLAY_APP_ID, &name, &target, layout)?;
     let opts = PlayOptions {
         episodes: args.episodes,
         seed: args.seed,

@@ -3,7 +3,7 @@
 //! (`rerun file.rrd viz/rall-play.rbl`).
 //!
 //! The 3D view's eye follows the robot: an `EyeControls3D` view property tracking
-//! `world/robot/trunk` from a few metres behind it. rerun 0.36's Rust blueprint
+//! `world/robot/trunk/follow` from a few metres behind it. rerun 0.36's Rust blueprint
 //! builder cannot set view properties, so [`Layout::send`] adds that property to
 //! the builder's blueprint messages before sending them (one blueprint, one
 //! activation, exactly as the builder would).
@@ -12,9 +12,10 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use rerun::blueprint::components::Eye3DKind;
+use rerun::blueprint::components::PlayState;
 use rerun::blueprint::{
     BarChartView, Blueprint, BlueprintActivation, ContainerLike, Horizontal, Spatial3DView, Tabs,
-    TextLogView, TimeSeriesView, Vertical,
+    TextLogView, TimePanel, TimeSeriesView, Vertical,
 };
 use rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D;
 use rerun::log::LogMsg;
@@ -29,8 +30,9 @@ fn series(name: &str, origin: &str) -> ContainerLike {
     TimeSeriesView::new(name).with_origin(origin).into()
 }
 
-/// The entity the 3D view's eye follows.
-pub const FOLLOWED_ENTITY: &str = "world/robot/trunk";
+/// The entity the 3D view's eye follows: invisible points around the trunk
+/// (`episode::log_follow_frame`), whose bounding box sets how far the eye stays.
+pub const FOLLOWED_ENTITY: &str = "world/robot/trunk/follow";
 /// Where the eye starts (world, m): behind, to the right of and above the spawn
 /// point, looking at the trunk; it then keeps this offset as the robot walks.
 const EYE_POSITION_M: [f32; 3] = [-1.6, -1.6, 1.1];
@@ -43,6 +45,16 @@ pub struct Layout {
 }
 
 impl Layout {
+    /// The same layout, opened at the recording's last frame instead of playing it
+    /// from the start (the time panel follows the latest data): where an episode
+    /// ended, and headless screenshots of it (`viz/screenshot.sh`).
+    pub fn opened_at_end(mut self) -> Self {
+        self.blueprint = self
+            .blueprint
+            .with_time_panel(TimePanel::new().with_play_state(PlayState::Following));
+        self
+    }
+
     /// Sends the layout through `rec` (a recording or a blueprint file) and
     /// activates it as the default.
     pub fn send(&self, rec: &RecordingStream) -> Result<()> {

@@ -6,6 +6,7 @@
 //! | --- | --- | --- |
 //! | `world/robot/<body>` | `Transform3D` (world pose of the body) | every step |
 //! | `world/robot/<body>/<geom>` | box / capsule / ellipsoid / cylinder in the body frame | static |
+//! | `world/robot/trunk/follow` | invisible points: the box the 3D view's eye frames and follows | static |
 //! | `world/terrain/chunk_<x>_<y>` | heightfield mesh, 8 m chunks, logged when the robot comes near | static |
 //! | `world/ground` | a quad (flat ground) | static |
 //! | `world/velocity` | arrows at the trunk: command (green), measured (blue) | every step |
@@ -181,6 +182,34 @@ fn log_mesh(rec: &RecordingStream, path: &str, m: &TriMesh) -> Result<()> {
     Ok(())
 }
 
+/// Half extents (m, trunk frame) of the box the 3D view's eye frames: rerun's
+/// tracking eye orbits at 1.5x the tracked entity's bounding-sphere radius, so this
+/// box puts the eye about 2.4 m from the trunk, the robot and its surroundings in view.
+const FOLLOW_FRAME_HALF_M: [f32; 3] = [1.2, 0.9, 0.45];
+
+/// The entity the eye tracks ([`super::blueprint::FOLLOWED_ENTITY`]): the corners of
+/// [`FOLLOW_FRAME_HALF_M`] as zero-radius points in the trunk frame, invisible but
+/// with a bounding box. rerun tracks an entity's own geometry, not its children's,
+/// so the trunk body (a transform only) cannot be tracked, and its box geom alone
+/// would put the eye 0.5 m from it.
+fn log_follow_frame(rec: &RecordingStream, trunk_path: &str) -> Result<()> {
+    let [x, y, z] = FOLLOW_FRAME_HALF_M;
+    let corners: Vec<[f32; 3]> = (0..8)
+        .map(|i| {
+            let sign = |bit: usize| if i & bit == 0 { -1.0 } else { 1.0 };
+            [sign(1) * x, sign(2) * y, sign(4) * z]
+        })
+        .collect();
+    rec.log_static(
+        format!("{trunk_path}/{FOLLOW_FRAME}"),
+        &rerun::Points3D::new(corners).with_radii([0.0]),
+    )?;
+    Ok(())
+}
+
+/// Name of the follow frame's entity under the trunk.
+pub const FOLLOW_FRAME: &str = "follow";
+
 /// Entity path of body `b` under `world/robot`.
 pub fn body_path(robot: &Robot, b: usize) -> String {
     let name = robot.model().name(ObjKind::Body, b);
@@ -237,6 +266,7 @@ impl EpisodeLogger {
             };
             log_primitive(&rec, &path, &prim, rgba(m.geom_rgba()[g]))?;
         }
+        log_follow_frame(&rec, &body_path(robot, robot.layout.trunk_body))?;
         if terrain.is_none() {
             log_mesh(
                 &rec,
