@@ -9,7 +9,8 @@
 //! - `recording to file, value every step`: the same with the critic read and
 //!   logged every policy step, as before issue 14 (the "before" of the change).
 //!
-//! After criterion, prints the overhead ratios and the .rrd size per simulated minute.
+//! After criterion, prints the overhead ratios, a recording's fixed cost (open with
+//! the layout, then finish, with no steps) and the .rrd size per simulated minute.
 //!
 //! `cargo bench --bench play`
 
@@ -109,7 +110,7 @@ fn main() {
         value_every_frames: 1,
         ..opts.clone()
     };
-    let mut t = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+    let mut t = [Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()];
     for _ in 0..7 {
         for (k, times) in t.iter_mut().enumerate() {
             let t0 = Instant::now();
@@ -122,12 +123,18 @@ fn main() {
                     Some(rerun::RecordingStream::disabled()),
                 ),
                 2 => run(&learner, &env, &opts, Some(file_recording(&path))),
-                _ => run(
+                3 => run(
                     &learner,
                     &env,
                     &every_step,
                     Some(file_recording(&dir.path().join("every-step.rrd"))),
                 ),
+                // A recording's fixed cost: open (threads, file, layout) and finish.
+                _ => {
+                    let rec = file_recording(&dir.path().join("empty.rrd"));
+                    viz::finish_recording(rec).expect("finish");
+                    0
+                }
             };
             times.push(t0.elapsed().as_secs_f64());
         }
@@ -136,12 +143,13 @@ fn main() {
         v.sort_by(|a, b| a.total_cmp(b));
         v[v.len() / 2]
     };
-    let [mut a, mut b, mut f, mut g] = t;
-    let (none, disabled, file, file_every) = (
+    let [mut a, mut b, mut f, mut g, mut e] = t;
+    let (none, disabled, file, file_every, empty) = (
         median(&mut a),
         median(&mut b),
         median(&mut f),
         median(&mut g),
+        median(&mut e),
     );
     let sim_min = STEPS as f64 * env.control.policy_dt_s() / 60.0;
     let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
@@ -181,6 +189,15 @@ fn main() {
         "  of which rerun itself (file vs disabled recording): {:+.1}% (ratio {:.3})",
         (file / disabled - 1.0) * 100.0,
         file / disabled
+    );
+    println!(
+        "  a recording's fixed cost (open, layout, finish): {:.1} ms, {:.1}% of no recording",
+        empty * 1e3,
+        empty / none * 100.0
+    );
+    println!(
+        "  per-step overhead (file - fixed cost vs no recording): {:+.1}%",
+        ((file - empty) / none - 1.0) * 100.0
     );
     println!(
         "  .rrd size: {:.2} MB for {:.2} simulated min = {:.2} MB per simulated minute",
