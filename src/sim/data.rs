@@ -7,6 +7,20 @@ use super::ffi;
 use super::model::{Model, ObjKind};
 use super::shim;
 
+/// The system's page size in bytes.
+fn page_size() -> usize {
+    static PAGE: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *PAGE.get_or_init(|| {
+        // SAFETY: sysconf has no preconditions.
+        let n = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
+        if n > 0 {
+            n as usize
+        } else {
+            4096
+        }
+    })
+}
+
 /// The array sizes of the model family a `Data` was made for (slices use them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Shape {
@@ -182,9 +196,53 @@ impl Data {
         // The model's reference pose (qpos0) may be no real state (legs through
         // the ground, more contacts than the arena holds): its warnings are not
         // the caller's concern, MuJoCo errors are. Resets start counting afresh.
-        match data.forward(model) {
-            Ok(()) | Err(SimError::Unstable { .. }) => Ok(data),
+        let r = match data.forward(model) {
+            Ok(()) | Err(SimError::Unstable { .. }) => Ok(()),
             Err(e) => Err(e),
+        };
+        data.release_zero_pages();
+        r.map(|()| data)
+    }
+
+    /// Hands the all-zero pages of the data's buffer back to the kernel
+    /// (`madvise(MADV_DONTNEED)`), so that an env's resident memory is what its
+    /// physics uses, not what the arena could hold.
+    ///
+    /// MuJoCo 2.2 sizes every mjData for `njmax` constraint rows (a dense
+    /// njmax x njmax matrix among its arrays: 1.2 MB at njmax 300) and
+    /// `mj_resetData` zero-fills the whole buffer, which makes every page resident,
+    /// while a walking robot uses a few dozen rows. A private anonymous page given
+    /// back this way reads as zeros again, so the contents, and the physics, are
+    /// unchanged; only pages MuJoCo writes later come back.
+    fn release_zero_pages(&mut self) {
+        let page = page_size();
+        let d = self.d();
+        let (start, len) = (d.buffer as usize, d.nbuffer.max(0) as usize);
+        let first = start.next_multiple_of(page);
+        let end = (start + len) / page * page;
+        let mut run: Option<usize> = None;
+        let give_back = |from: usize, to: usize| {
+            // SAFETY: [from, to) is whole pages inside the buffer this Data owns
+            // (allocated by mj_makeData, private anonymous memory), all zero.
+            unsafe { libc::madvise(from as *mut libc::c_void, to - from, libc::MADV_DONTNEED) };
+        };
+        let mut p = first;
+        while p < end {
+            // SAFETY: the page lies inside the buffer (see above), aligned for u64.
+            let words = unsafe { std::slice::from_raw_parts(p as *const u64, page / 8) };
+            let zero = words.iter().all(|&w| w == 0);
+            match (zero, run) {
+                (true, None) => run = Some(p),
+                (false, Some(from)) => {
+                    give_back(from, p);
+                    run = None;
+                }
+                _ => {}
+            }
+            p += page;
+        }
+        if let Some(from) = run {
+            give_back(from, end);
         }
     }
 
@@ -276,7 +334,9 @@ impl Data {
         self.guarded(rc, "mj_resetData")?;
         self.broken = None;
         self.warnings_seen = Warnings::default();
-        self.forward(model)
+        let r = self.forward(model);
+        self.release_zero_pages();
+        r
     }
 
     /// Resets to the keyframe called `name`.
@@ -289,7 +349,9 @@ impl Data {
         self.guarded(rc, "mj_resetDataKeyframe")?;
         self.broken = None;
         self.warnings_seen = Warnings::default();
-        self.forward(model)
+        let r = self.forward(model);
+        self.release_zero_pages();
+        r
     }
 
     /// Arena use since the last reset, beside the capacities.
@@ -520,5 +582,96 @@ pub mod raw_bench {
             data.guarded(rc, "mj_step")?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn aliengo() -> Model {
+        Model::from_xml_path(concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml")).unwrap()
+    }
+
+    /// A deterministic, contact-rich control sequence (torques in N m).
+    fn ctrl_at(step: usize, j: usize) -> f64 {
+        30.0 * ((step as f64) * 0.07 + j as f64).sin()
+    }
+
+    /// The buffer's whole pages: (first page, page count).
+    fn buffer_pages(d: &Data) -> (usize, usize) {
+        let page = page_size();
+        let (start, len) = (d.d().buffer as usize, d.d().nbuffer as usize);
+        let first = start.next_multiple_of(page);
+        (first, ((start + len) / page * page - first) / page)
+    }
+
+    fn resident_pages(d: &Data) -> usize {
+        let (first, n) = buffer_pages(d);
+        let mut v = vec![0u8; n];
+        // SAFETY: page-aligned range inside the buffer; v has one byte per page.
+        let rc =
+            unsafe { libc::mincore(first as *mut libc::c_void, n * page_size(), v.as_mut_ptr()) };
+        assert_eq!(rc, 0, "mincore");
+        v.iter().filter(|&&b| b & 1 == 1).count()
+    }
+
+    fn buffer_bytes(d: &Data) -> Vec<u8> {
+        // SAFETY: the buffer is nbuffer bytes owned by d.
+        unsafe { std::slice::from_raw_parts(d.d().buffer as *const u8, d.d().nbuffer as usize) }
+            .to_vec()
+    }
+
+    #[test]
+    fn released_pages_keep_the_contents_and_leave_memory() {
+        let m = aliengo();
+        let mut d = Data::new(&m).unwrap();
+        let (_, pages) = buffer_pages(&d);
+        for step in 0..200 {
+            for j in 0..m.nu() {
+                d.ctrl_mut()[j] = ctrl_at(step, j);
+            }
+            let _ = d.step(&m);
+        }
+        let before = buffer_bytes(&d);
+        d.release_zero_pages();
+        assert_eq!(buffer_bytes(&d), before, "the contents changed");
+        d.reset(&m).unwrap();
+        let resident = resident_pages(&d);
+        println!("resident after a reset: {resident} of {pages} pages");
+        assert!(
+            resident * 4 < pages,
+            "{resident} of {pages} pages resident after a reset"
+        );
+    }
+
+    #[test]
+    fn released_pages_leave_the_trajectory_bit_identical() {
+        let m = aliengo();
+        let mut plain = Data::new(&m).unwrap();
+        let mut released = Data::new(&m).unwrap();
+        for episode in 0..2 {
+            plain.reset(&m).unwrap();
+            released.reset(&m).unwrap();
+            for step in 0..300 {
+                for j in 0..m.nu() {
+                    let u = ctrl_at(step + 1000 * episode, j);
+                    plain.ctrl_mut()[j] = u;
+                    released.ctrl_mut()[j] = u;
+                }
+                let a = plain.step(&m).is_ok();
+                // Every step, the zero pages go back, so that MuJoCo meets fresh
+                // zero pages wherever it reads before writing.
+                released.release_zero_pages();
+                let b = released.step(&m).is_ok();
+                assert_eq!(a, b, "episode {episode} step {step}");
+                let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(plain.qpos()), bits(released.qpos()), "qpos at {step}");
+                assert_eq!(bits(plain.qvel()), bits(released.qvel()), "qvel at {step}");
+                if !a {
+                    break;
+                }
+            }
+        }
     }
 }
