@@ -204,6 +204,14 @@ impl Data {
         r.map(|()| data)
     }
 
+    /// The addresses of the whole pages inside the data's buffer.
+    fn buffer_whole_pages(&self) -> std::ops::Range<usize> {
+        let page = page_size();
+        let d = self.d();
+        let (start, len) = (d.buffer as usize, d.nbuffer.max(0) as usize);
+        start.next_multiple_of(page)..(start + len) / page * page
+    }
+
     /// Hands the all-zero pages of the data's buffer back to the kernel
     /// (`madvise(MADV_DONTNEED)`), so that an env's resident memory is what its
     /// physics uses, not what the arena could hold.
@@ -216,10 +224,7 @@ impl Data {
     /// unchanged; only pages MuJoCo writes later come back.
     fn release_zero_pages(&mut self) {
         let page = page_size();
-        let d = self.d();
-        let (start, len) = (d.buffer as usize, d.nbuffer.max(0) as usize);
-        let first = start.next_multiple_of(page);
-        let end = (start + len) / page * page;
+        let std::ops::Range { start: first, end } = self.buffer_whole_pages();
         let mut run: Option<usize> = None;
         let give_back = |from: usize, to: usize| {
             // SAFETY: [from, to) is whole pages inside the buffer this Data owns
@@ -598,20 +603,21 @@ mod tests {
         30.0 * ((step as f64) * 0.07 + j as f64).sin()
     }
 
-    /// The buffer's whole pages: (first page, page count).
-    fn buffer_pages(d: &Data) -> (usize, usize) {
-        let page = page_size();
-        let (start, len) = (d.d().buffer as usize, d.d().nbuffer as usize);
-        let first = start.next_multiple_of(page);
-        (first, ((start + len) / page * page - first) / page)
+    fn buffer_pages(d: &Data) -> usize {
+        d.buffer_whole_pages().len() / page_size()
     }
 
     fn resident_pages(d: &Data) -> usize {
-        let (first, n) = buffer_pages(d);
-        let mut v = vec![0u8; n];
+        let pages = d.buffer_whole_pages();
+        let mut v = vec![0u8; buffer_pages(d)];
         // SAFETY: page-aligned range inside the buffer; v has one byte per page.
-        let rc =
-            unsafe { libc::mincore(first as *mut libc::c_void, n * page_size(), v.as_mut_ptr()) };
+        let rc = unsafe {
+            libc::mincore(
+                pages.start as *mut libc::c_void,
+                pages.len(),
+                v.as_mut_ptr(),
+            )
+        };
         assert_eq!(rc, 0, "mincore");
         v.iter().filter(|&&b| b & 1 == 1).count()
     }
@@ -626,7 +632,7 @@ mod tests {
     fn released_pages_keep_the_contents_and_leave_memory() {
         let m = aliengo();
         let mut d = Data::new(&m).unwrap();
-        let (_, pages) = buffer_pages(&d);
+        let pages = buffer_pages(&d);
         for step in 0..200 {
             for j in 0..m.nu() {
                 d.ctrl_mut()[j] = ctrl_at(step, j);

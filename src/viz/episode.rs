@@ -208,7 +208,7 @@ fn log_follow_frame(rec: &RecordingStream, trunk_path: &str) -> Result<()> {
 }
 
 /// Name of the follow frame's entity under the trunk.
-pub const FOLLOW_FRAME: &str = "follow";
+const FOLLOW_FRAME: &str = "follow";
 
 /// Entity path of body `b` under `world/robot`.
 pub fn body_path(robot: &Robot, b: usize) -> String {
