@@ -220,3 +220,66 @@ fn kl_is_zero_when_the_policy_has_not_moved() {
         assert_eq!(stats.clip_fraction, 0.0, "{critic:?}");
     }
 }
+
+/// The rates the Adam steps used are reported beside the end value: with the
+/// adaptive rule they lie in [min_lr, max_lr], the end value among them; with a
+/// fixed rate all three are that rate.
+#[test]
+fn the_update_reports_the_rates_its_steps_used() {
+    use rall::learn::{LrSchedule, PpoConfig};
+    for schedule in [LrSchedule::Adaptive, LrSchedule::Fixed] {
+        let cfg = LearnerConfig {
+            critic: CriticKind::Scalar,
+            ppo: PpoConfig {
+                learning_rate: 1e-3,
+                schedule,
+                ..PpoConfig::default()
+            },
+            actor_hidden: vec![64, 32],
+            critic_hidden: vec![64, 32],
+            ..LearnerConfig::default()
+        };
+        let (envs, steps, obs_dim, act_dim) = (32, 8, 48, 12);
+        let mut learner = Learner::new(obs_dim, act_dim, &cfg, 3).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut r = Rollout::new(steps, envs, obs_dim, act_dim);
+        for _ in 0..steps {
+            let obs: Vec<f32> = (0..envs * obs_dim)
+                .map(|_| rng.gen_range(-1.0..1.0))
+                .collect();
+            let out = learner.act(&obs, &mut rng);
+            let rew: Vec<f32> = (0..envs).map(|_| rng.gen_range(-1.0..1.0)).collect();
+            r.push(
+                &obs,
+                &out,
+                &rew,
+                &vec![false; envs],
+                &vec![false; envs],
+                &[],
+            )
+            .unwrap();
+        }
+        r.set_last_obs(&vec![0.0; envs * obs_dim]).unwrap();
+        let (min_lr, max_lr) = (cfg.ppo.min_lr, cfg.ppo.max_lr);
+        for _ in 0..3 {
+            let s = learner.update(&r).unwrap();
+            match schedule {
+                LrSchedule::Fixed => {
+                    assert_eq!(s.learning_rate, 1e-3);
+                    assert!((s.learning_rate_mean - 1e-3).abs() < 1e-9, "{s:?}");
+                    assert_eq!(s.learning_rate_max, 1e-3);
+                }
+                LrSchedule::Adaptive => {
+                    assert!(s.learning_rate <= s.learning_rate_max, "{s:?}");
+                    assert!(s.learning_rate >= min_lr, "{s:?}");
+                    assert!(
+                        s.learning_rate_mean >= min_lr * 0.999
+                            && s.learning_rate_mean <= s.learning_rate_max * 1.001,
+                        "{s:?}"
+                    );
+                    assert!(s.learning_rate_max <= max_lr, "{s:?}");
+                }
+            }
+        }
+    }
+}

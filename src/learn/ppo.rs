@@ -126,7 +126,15 @@ pub struct UpdateStats {
     pub entropy: f32,
     /// Mean KL(old || new) per sample, measured before each step.
     pub approx_kl: f32,
+    /// The adaptive rate after the update (the next update starts from it).
     pub learning_rate: f32,
+    /// Mean of the rates the update's Adam steps used: the adaptive rule moves the
+    /// rate x1.5 or /1.5 at every mini-batch, so the end value hides what did the work.
+    #[serde(default)]
+    pub learning_rate_mean: f32,
+    /// Largest rate an Adam step of the update used.
+    #[serde(default)]
+    pub learning_rate_max: f32,
     /// Mean action std.
     pub mean_std: f32,
     /// Fraction of samples with `|ratio - 1| > clip`.
@@ -555,6 +563,8 @@ pub fn update(
             stats.entropy += entropy;
             stats.approx_kl += kl;
             stats.clip_fraction += clip_fraction;
+            stats.learning_rate_mean += opt.lr;
+            stats.learning_rate_max = stats.learning_rate_max.max(opt.lr);
             stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
             stats.actor_grad_norm += sq_a.sqrt() as f32;
             stats.critic_grad_norm += sq_c.sqrt() as f32;
@@ -566,6 +576,7 @@ pub fn update(
     stats.value_loss /= c;
     stats.entropy /= c;
     stats.approx_kl /= c;
+    stats.learning_rate_mean /= c;
     stats.clip_fraction /= c;
     stats.grad_norm /= c;
     stats.actor_grad_norm /= c;

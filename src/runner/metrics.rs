@@ -127,10 +127,12 @@ pub struct IterationRow<'a> {
 
 /// Columns appended after the risk counters: gradient norms and where the
 /// iteration's time went (seconds).
-const TIMING_COLUMNS: [&str; 17] = [
+const TIMING_COLUMNS: [&str; 19] = [
     "actor_grad_norm",
     "critic_grad_norm",
     "clipped_fraction",
+    "learning_rate_mean",
+    "learning_rate_max",
     "collect_physics_s",
     "collect_task_s",
     "collect_reset_s",
@@ -314,8 +316,12 @@ impl MetricsCsv {
         }
         let (c, t) = (&r.collect_times, &u.time);
         row.push_str(&format!(
-            ",{:.4},{:.4},{:.4}",
-            u.actor_grad_norm, u.critic_grad_norm, u.clipped_fraction
+            ",{:.4},{:.4},{:.4},{:.3e},{:.3e}",
+            u.actor_grad_norm,
+            u.critic_grad_norm,
+            u.clipped_fraction,
+            u.learning_rate_mean,
+            u.learning_rate_max
         ));
         for v in [
             c.physics_s,

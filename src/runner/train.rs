@@ -498,7 +498,7 @@ pub fn train_in(
         }
         bar.set_position(progress.iteration as u64);
         let status = format!(
-            "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | risk {}/{} | lr {:.1e} | std {:.3} | value loss {:.4}",
+            "it {:>5} | {:>7.1} min | {:>6.0} steps/s | collect {:.2}s learn {:.2}s | return {:>7.3} | len {:>5.0} | track {:.3} | falls {:>3}/{:<3} | level {:.2} | risk {}/{} | lr {:.1e} (mean {:.1e}) | std {:.3} | value loss {:.4}",
             progress.iteration,
             progress.wall_s / 60.0,
             iteration_env_steps as f64 / (collect_s + learn_s),
@@ -513,6 +513,7 @@ pub fn train_in(
             risk_fired.iter().sum::<u64>(),
             risk_exceeded.iter().sum::<u64>(),
             update.learning_rate,
+            update.learning_rate_mean,
             update.mean_std,
             update.value_loss,
         );
