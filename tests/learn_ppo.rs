@@ -174,43 +174,58 @@ fn ppo_learns_with_scalar_critic() {
     );
 }
 
+/// A small learner (64-32 networks, `critic`, `ppo`) and one rollout of 32 envs x 8
+/// steps it collected from uniform random observations; each reward comes from
+/// `reward` (given the stream the observations and actions are drawn from).
+fn small_learner_and_rollout(
+    critic: CriticKind,
+    ppo: rall::learn::PpoConfig,
+    seed: u64,
+    mut reward: impl FnMut(&mut ChaCha8Rng) -> f32,
+) -> (Learner, Rollout) {
+    let cfg = LearnerConfig {
+        critic,
+        ppo,
+        actor_hidden: vec![64, 32],
+        critic_hidden: vec![64, 32],
+        ..LearnerConfig::default()
+    };
+    let (envs, steps, obs_dim, act_dim) = (32, 8, 48, 12);
+    let learner = Learner::new(obs_dim, act_dim, &cfg, 3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut r = Rollout::new(steps, envs, obs_dim, act_dim);
+    for _ in 0..steps {
+        let obs: Vec<f32> = (0..envs * obs_dim)
+            .map(|_| rng.gen_range(-1.0..1.0))
+            .collect();
+        let out = learner.act(&obs, &mut rng);
+        let rew: Vec<f32> = (0..envs).map(|_| reward(&mut rng)).collect();
+        r.push(
+            &obs,
+            &out,
+            &rew,
+            &vec![false; envs],
+            &vec![false; envs],
+            &[],
+        )
+        .unwrap();
+    }
+    r.set_last_obs(&vec![0.0; envs * obs_dim]).unwrap();
+    (learner, r)
+}
+
 /// The adaptive learning rate reads KL(old || new): before any step (lr 0) the
 /// policy is the one that collected, so KL and the clipped fraction are ~0.
 #[test]
 fn kl_is_zero_when_the_policy_has_not_moved() {
     use rall::learn::{LrSchedule, PpoConfig};
     for critic in [CriticKind::Iqn, CriticKind::Scalar] {
-        let cfg = LearnerConfig {
-            critic,
-            ppo: PpoConfig {
-                learning_rate: 0.0,
-                schedule: LrSchedule::Fixed,
-                ..PpoConfig::default()
-            },
-            actor_hidden: vec![64, 32],
-            critic_hidden: vec![64, 32],
-            ..LearnerConfig::default()
+        let ppo = PpoConfig {
+            learning_rate: 0.0,
+            schedule: LrSchedule::Fixed,
+            ..PpoConfig::default()
         };
-        let (envs, steps, obs_dim, act_dim) = (32, 8, 48, 12);
-        let mut learner = Learner::new(obs_dim, act_dim, &cfg, 3).unwrap();
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let mut r = Rollout::new(steps, envs, obs_dim, act_dim);
-        for _ in 0..steps {
-            let obs: Vec<f32> = (0..envs * obs_dim)
-                .map(|_| rng.gen_range(-1.0..1.0))
-                .collect();
-            let out = learner.act(&obs, &mut rng);
-            r.push(
-                &obs,
-                &out,
-                &vec![0.5; envs],
-                &vec![false; envs],
-                &vec![false; envs],
-                &[],
-            )
-            .unwrap();
-        }
-        r.set_last_obs(&vec![0.0; envs * obs_dim]).unwrap();
+        let (mut learner, r) = small_learner_and_rollout(critic, ppo, 4, |_| 0.5);
         let stats = learner.update(&r).unwrap();
         assert!(
             stats.approx_kl.abs() < 1e-6,
@@ -228,39 +243,14 @@ fn kl_is_zero_when_the_policy_has_not_moved() {
 fn the_update_reports_the_rates_its_steps_used() {
     use rall::learn::{LrSchedule, PpoConfig};
     for schedule in [LrSchedule::Adaptive, LrSchedule::Fixed] {
-        let cfg = LearnerConfig {
-            critic: CriticKind::Scalar,
-            ppo: PpoConfig {
-                learning_rate: 1e-3,
-                schedule,
-                ..PpoConfig::default()
-            },
-            actor_hidden: vec![64, 32],
-            critic_hidden: vec![64, 32],
-            ..LearnerConfig::default()
+        let ppo = PpoConfig {
+            learning_rate: 1e-3,
+            schedule,
+            ..PpoConfig::default()
         };
-        let (envs, steps, obs_dim, act_dim) = (32, 8, 48, 12);
-        let mut learner = Learner::new(obs_dim, act_dim, &cfg, 3).unwrap();
-        let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let mut r = Rollout::new(steps, envs, obs_dim, act_dim);
-        for _ in 0..steps {
-            let obs: Vec<f32> = (0..envs * obs_dim)
-                .map(|_| rng.gen_range(-1.0..1.0))
-                .collect();
-            let out = learner.act(&obs, &mut rng);
-            let rew: Vec<f32> = (0..envs).map(|_| rng.gen_range(-1.0..1.0)).collect();
-            r.push(
-                &obs,
-                &out,
-                &rew,
-                &vec![false; envs],
-                &vec![false; envs],
-                &[],
-            )
-            .unwrap();
-        }
-        r.set_last_obs(&vec![0.0; envs * obs_dim]).unwrap();
-        let (min_lr, max_lr) = (cfg.ppo.min_lr, cfg.ppo.max_lr);
+        let (min_lr, max_lr) = (ppo.min_lr, ppo.max_lr);
+        let (mut learner, r) =
+            small_learner_and_rollout(CriticKind::Scalar, ppo, 5, |rng| rng.gen_range(-1.0..1.0));
         for _ in 0..3 {
             let s = learner.update(&r).unwrap();
             match schedule {
