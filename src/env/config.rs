@@ -278,7 +278,9 @@ impl Default for RandomizationConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EnvConfig {
-    /// Robot MJCF (robot only; the scene is added from `terrain`).
+    /// Robot MJCF (robot only; the scene is added from `terrain`). A relative path
+    /// is looked up in the working directory, then in `$RALL_HOME`, then in the
+    /// source tree `rall` was built from (see [`EnvConfig::robot_mjcf_path`]).
     pub robot_mjcf: String,
     pub control: crate::robot::ControlConfig,
     pub observation: ObservationConfig,
@@ -323,6 +325,14 @@ fn check_range(r: [f64; 2], key: &str) -> Result<(), String> {
 }
 
 impl EnvConfig {
+    /// Where [`EnvConfig::robot_mjcf`] is: as given when it exists (absolute, or
+    /// relative to the working directory), else under `$RALL_HOME`, else under the
+    /// source tree of this build, so `rall` runs from any directory. `None` when
+    /// none of these exists.
+    pub fn robot_mjcf_path(&self) -> Option<std::path::PathBuf> {
+        resolve_data_path(&self.robot_mjcf)
+    }
+
     /// Refuses impossible values with a message naming the key.
     pub fn validate(&self) -> Result<(), String> {
         self.control.validate()?;
@@ -475,5 +485,54 @@ impl EnvConfig {
     /// Policy steps per episode.
     pub fn max_episode_steps(&self) -> usize {
         (self.episode.length_s / self.control.policy_dt_s()).round() as usize
+    }
+}
+
+/// A data file of the repository (`mjcf/...`) found from any working directory: the
+/// path as given, else under `$RALL_HOME`, else under the source tree of this build.
+pub fn resolve_data_path(path: &str) -> Option<std::path::PathBuf> {
+    let p = std::path::Path::new(path);
+    if p.exists() || p.is_absolute() {
+        return p.exists().then(|| p.to_path_buf());
+    }
+    let homes = [
+        std::env::var_os("RALL_HOME").map(std::path::PathBuf::from),
+        Some(std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))),
+    ];
+    homes
+        .into_iter()
+        .flatten()
+        .map(|h| h.join(p))
+        .find(|c| c.exists())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn repository_files_are_found_from_any_working_directory() {
+        // Relative to the working directory or not, the default robot is found: the
+        // source tree of this build is the last place looked in.
+        let found = EnvConfig::default().robot_mjcf_path().expect("found");
+        assert!(found.ends_with("mjcf/aliengo.xml") && found.exists());
+        assert!(resolve_data_path("mjcf/no-such-robot.xml").is_none());
+        assert!(resolve_data_path("/no/such/dir/aliengo.xml").is_none());
+        let abs = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("mjcf/aliengo.xml");
+        assert_eq!(resolve_data_path(abs.to_str().unwrap()), Some(abs));
+    }
+
+    #[test]
+    fn a_missing_robot_file_says_where_it_was_looked_for() {
+        let cfg = EnvConfig {
+            robot_mjcf: "mjcf/no-such-robot.xml".into(),
+            ..EnvConfig::default()
+        };
+        let err = match crate::env::build_scene(&cfg, 0) {
+            Ok(_) => panic!("a missing robot file built a scene"),
+            Err(e) => format!("{e:#}"),
+        };
+        assert!(err.contains("mjcf/no-such-robot.xml"), "{err}");
+        assert!(err.contains("RALL_HOME"), "{err}");
     }
 }

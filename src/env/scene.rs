@@ -17,10 +17,18 @@ pub struct Scene {
 /// Reads `cfg.robot_mjcf`, adds the ground (plane or heightfield from
 /// `cfg.terrain`, generated from `seed`) and loads it.
 pub fn build_scene(cfg: &EnvConfig, seed: u64) -> Result<Scene> {
-    let path = Path::new(&cfg.robot_mjcf);
+    let found = cfg.robot_mjcf_path();
+    let path = found.as_deref().unwrap_or(Path::new(&cfg.robot_mjcf));
     let robot_xml = std::fs::read_to_string(path).map_err(|e| SimError::ModelFile {
         path: path.to_path_buf(),
-        reason: e.to_string(),
+        reason: if found.is_none() {
+            format!(
+                "{e}; looked in the working directory, in $RALL_HOME and in {}",
+                env!("CARGO_MANIFEST_DIR")
+            )
+        } else {
+            e.to_string()
+        },
     })?;
     let terrain = Terrain::generate(&cfg.terrain, seed);
     let scene_xml = terrain

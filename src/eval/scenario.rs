@@ -484,9 +484,15 @@ pub fn build_scenario(
     let env = scenario_env_config(spec, base, params);
     env.validate()
         .map_err(|e| anyhow::anyhow!("scenario {}: {e}", spec.name()))?;
-    let path = Path::new(&env.robot_mjcf);
-    let robot_xml = std::fs::read_to_string(path)
-        .with_context(|| format!("reading the robot MJCF {}", path.display()))?;
+    let found = env.robot_mjcf_path();
+    let path = found.as_deref().unwrap_or(Path::new(&env.robot_mjcf));
+    let robot_xml = std::fs::read_to_string(path).with_context(|| {
+        format!(
+            "reading the robot MJCF {} (looked in the working directory, in $RALL_HOME and in {})",
+            path.display(),
+            env!("CARGO_MANIFEST_DIR")
+        )
+    })?;
     let robot = Model::from_xml_str(&robot_xml, &path.display().to_string())?;
     let key_name = env.control.default_keyframe.clone();
     let robot_key = mjcf::key_joint_values(&robot, &key_name)?;
