@@ -2,17 +2,20 @@
 //! rerun logging to an .rrd file versus without logging, side by side:
 //!
 //! - `no recording`: policy + physics only (what `play` costs without a viewer);
-//! - `disabled recording`: everything the logger does (critic evaluated every step,
-//!   columns built) with rerun's disabled stream (no serialisation, no I/O);
+//! - `disabled recording`: everything the logger does (critic read, columns built)
+//!   with rerun's disabled stream (no serialisation, no I/O);
 //! - `recording to file`: the full thing, as `rall play --save` (the critic read
 //!   and logged every `VALUE_EVERY_FRAMES` frames);
 //! - `recording to file, value every step`: the same with the critic read and
 //!   logged every policy step, as before issue 14 (the "before" of the change).
 //!
-//! After criterion, prints the overhead ratios, a recording's fixed cost (open with
-//! the layout, then finish, with no steps) and the .rrd size per simulated minute.
+//! After criterion, runs every variant once per round for `PLAY_BENCH_ROUNDS` (21)
+//! rounds and prints each overhead as the median and quartiles of its ratio to the
+//! same round's run without a recording (paired, so a busy spell on the shared
+//! machine hits both sides), a recording's fixed cost (open with the layout, then
+//! finish, with no steps) and the .rrd size per simulated minute.
 //!
-//! `cargo bench --bench play`
+//! `cargo bench --bench play` (the side-by-side part alone: `cargo bench --bench play -- none`)
 
 use std::hint::black_box;
 use std::path::Path;
@@ -105,13 +108,19 @@ fn main() {
     }
     c.final_summary();
 
-    // Side by side, interleaved (the machine may be busy): median of 7 each.
+    // Side by side, interleaved (the machine may be busy): every round runs each
+    // variant once, and the overheads are the medians (and quartiles) over rounds of
+    // the ratio to that round's run without a recording.
     let every_step = PlayOptions {
         value_every_frames: 1,
         ..opts.clone()
     };
+    let rounds: usize = std::env::var("PLAY_BENCH_ROUNDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(21);
     let mut t = [Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()];
-    for _ in 0..7 {
+    for _ in 0..rounds {
         for (k, times) in t.iter_mut().enumerate() {
             let t0 = Instant::now();
             match k {
@@ -139,22 +148,20 @@ fn main() {
             times.push(t0.elapsed().as_secs_f64());
         }
     }
-    let median = |v: &mut Vec<f64>| {
+    let quartiles = |mut v: Vec<f64>| {
         v.sort_by(|a, b| a.total_cmp(b));
-        v[v.len() / 2]
+        let n = v.len();
+        (v[n / 4], v[n / 2], v[(3 * n) / 4])
     };
-    let [mut a, mut b, mut f, mut g, mut e] = t;
-    let (none, disabled, file, file_every, empty) = (
-        median(&mut a),
-        median(&mut b),
-        median(&mut f),
-        median(&mut g),
-        median(&mut e),
-    );
+    let ratio_to =
+        |k: usize, base: usize| quartiles(t[k].iter().zip(&t[base]).map(|(a, b)| a / b).collect());
+    let median = |k: usize| quartiles(t[k].clone()).1;
+    let (none, disabled, file, file_every, empty) =
+        (median(0), median(1), median(2), median(3), median(4));
     let sim_min = STEPS as f64 * env.control.policy_dt_s() / 60.0;
     let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
     println!(
-        "\nplay, {STEPS} policy steps ({:.1} s simulated), medians of 7 interleaved runs:",
+        "\nplay, {STEPS} policy steps ({:.1} s simulated), {rounds} interleaved rounds (medians):",
         sim_min * 60.0
     );
     println!(
@@ -171,33 +178,28 @@ fn main() {
         file * 1e3,
         viz::episode::VALUE_EVERY_FRAMES
     );
-    println!(
-        "  same, critic every step {:8.1} ms  (before issue 14)",
-        file_every * 1e3
+    println!("  same, critic every step {:8.1} ms", file_every * 1e3);
+    let show = |label: &str, (q1, q2, q3): (f64, f64, f64)| {
+        println!(
+            "  {label:52} {:+5.1}%  (quartiles {:+.1}% .. {:+.1}%)",
+            (q2 - 1.0) * 100.0,
+            (q1 - 1.0) * 100.0,
+            (q3 - 1.0) * 100.0
+        );
+    };
+    show(
+        "overhead of logging to a file vs no recording:",
+        ratio_to(2, 0),
+    );
+    show("the same with the critic read every step:", ratio_to(3, 0));
+    show(
+        "critic + logger without rerun I/O vs no recording:",
+        ratio_to(1, 0),
     );
     println!(
-        "  overhead with the critic every step (before):        {:+.1}% (ratio {:.3})",
-        (file_every / none - 1.0) * 100.0,
-        file_every / none
-    );
-    println!(
-        "  overhead of logging to a file vs no recording:      {:+.1}% (ratio {:.3})",
-        (file / none - 1.0) * 100.0,
-        file / none
-    );
-    println!(
-        "  of which rerun itself (file vs disabled recording): {:+.1}% (ratio {:.3})",
-        (file / disabled - 1.0) * 100.0,
-        file / disabled
-    );
-    println!(
-        "  a recording's fixed cost (open, layout, finish): {:.1} ms, {:.1}% of no recording",
+        "  a recording's fixed cost (open, layout, finish, nothing logged): {:.1} ms, {:.1}% of no recording",
         empty * 1e3,
         empty / none * 100.0
-    );
-    println!(
-        "  per-step overhead (file - fixed cost vs no recording): {:+.1}%",
-        ((file - empty) / none - 1.0) * 100.0
     );
     println!(
         "  .rrd size: {:.2} MB for {:.2} simulated min = {:.2} MB per simulated minute",

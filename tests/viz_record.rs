@@ -19,9 +19,9 @@ use rall::viz::{
     self, PlayOptions, RerunTarget, RrdSummary, TrainRecorder, TrainRecordingOptions, ValueProbe,
 };
 
-const BODIES: [&str; 13] = [
-    "trunk", "FR_hip", "FR_thigh", "FR_calf", "FR_foot", "FL_hip", "FL_thigh", "FL_calf",
-    "FL_foot", "RR_hip", "RR_thigh", "RR_calf", "RR_foot",
+const BODIES: [&str; 10] = [
+    "trunk", "FR_hip", "FR_thigh", "FR_calf", "FL_hip", "FL_thigh", "FL_calf", "RR_hip",
+    "RR_thigh", "RR_calf",
 ];
 
 fn root() -> PathBuf {
@@ -136,10 +136,7 @@ fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
     // One frame at each reset plus one per step.
     let frames: u64 = report.episodes.iter().map(|e| e.steps as u64 + 1).sum();
     assert!(frames >= 4, "episodes too short: {report:?}");
-    for body in BODIES
-        .iter()
-        .chain(&["RL_hip", "RL_thigh", "RL_calf", "RL_foot"])
-    {
+    for body in BODIES.iter().chain(&["RL_hip", "RL_thigh", "RL_calf"]) {
         let e = s
             .entity(&format!("world/robot/{body}"))
             .unwrap_or_else(|| panic!("no entity for body {body}"));
@@ -173,7 +170,9 @@ fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
         follow.components
     );
     assert!(viz::FOLLOWED_ENTITY.starts_with("world/robot/trunk/"));
-    let foot = s.entity("world/robot/FR_foot/FR_foot").expect("foot geom");
+    // A foot is welded to its calf: drawn under the calf's transform, it needs none.
+    assert!(s.entity("world/robot/FR_foot").is_none());
+    let foot = s.entity("world/robot/FR_calf/FR_foot").expect("foot geom");
     assert!(
         foot.components
             .iter()
@@ -228,6 +227,31 @@ fn play_recording_has_a_transform_per_step_and_a_bar_chart_every_fifth_frame() {
         s.blueprint_activations
     );
     verify_with_rerun_cli(&path);
+}
+
+#[test]
+fn an_episode_is_sent_in_whole_batches_of_steps() {
+    // The reset frame rides with the first batch: 30 steps at 10 steps per batch are
+    // three chunks per entity, not three and a one-frame remainder sent after the
+    // last step (which costs a chunk per entity when the recording closes).
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("batches.rrd");
+    let cfg = small_cfg(CriticKind::Iqn);
+    let opts = PlayOptions {
+        episodes: 1,
+        max_steps: Some(30),
+        flush_steps: 10,
+        ..PlayOptions::default()
+    };
+    let (report, s) = record_play(&cfg, &opts, &path);
+    assert_eq!(report.policy_steps, 30, "the robot fell: {report:?}");
+    for p in ["world/robot/trunk", "plots/torques", "world/velocity"] {
+        assert_eq!(
+            s.entity(p).unwrap().temporal_chunk_rows,
+            [11, 10, 10],
+            "{p}"
+        );
+    }
 }
 
 #[test]

@@ -249,6 +249,24 @@ impl Model {
     pub fn body_parent(&self, body: usize) -> usize {
         self.ints(self.m().body_parentid, self.nbody())[body] as usize
     }
+    /// Position of each body's frame in its parent's frame (m).
+    pub fn body_pos_m(&self) -> &[[f64; 3]] {
+        self.vec3s(self.m().body_pos, self.nbody())
+    }
+    /// Orientation of each body's frame in its parent's frame (w, x, y, z).
+    pub fn body_quat(&self) -> &[[f64; 4]] {
+        let n = self.nbody();
+        let p = self.m().body_quat;
+        if n == 0 || p.is_null() {
+            return &[];
+        }
+        // SAFETY: body_quat holds 4*nbody reals.
+        unsafe { std::slice::from_raw_parts(p as *const [f64; 4], n) }
+    }
+    /// Joints of each body (0: welded to its parent).
+    pub fn body_joint_count(&self, body: usize) -> usize {
+        self.ints(self.m().body_jntnum, self.nbody())[body] as usize
+    }
     /// Body masses (kg), one per body.
     pub fn body_mass_kg(&self) -> &[f64] {
         self.reals(self.m().body_mass, self.nbody())

@@ -5,7 +5,7 @@
 //! | path | what | when |
 //! | --- | --- | --- |
 //! | `world/robot/<body>` | `Transform3D` (world pose of the body) | every step |
-//! | `world/robot/<body>/<geom>` | box / capsule / ellipsoid / cylinder in the body frame | static |
+//! | `world/robot/<body>/<geom>` | box / capsule / ellipsoid / cylinder in the body frame; a welded body's geoms (the feet) under its parent | static |
 //! | `world/robot/trunk/follow` | invisible points: the box the 3D view's eye frames and follows | static |
 //! | `world/terrain/chunk_<x>_<y>` | heightfield mesh, 8 m chunks, logged when the robot comes near | static |
 //! | `world/ground` | a quad (flat ground) | static |
@@ -23,10 +23,13 @@
 //! `step` (policy steps), plus any extra constant sequence (e.g. `iteration` for
 //! evaluation episodes during training).
 //!
-//! Per-step data is buffered and handed, every [`DEFAULT_FLUSH_STEPS`] steps, to a
-//! worker thread that reads the critic for the whole batch (about 6x cheaper per
-//! step than one observation at a time) and sends one chunk per entity, while the
-//! simulation goes on; events and terrain go out at once from the caller's thread.
+//! Per-step data is buffered and handed, every [`DEFAULT_FLUSH_STEPS`] policy steps,
+//! to a worker thread that reads the critic for the whole batch (about 6x cheaper
+//! per step than one observation at a time, on the worker's own core) and sends one
+//! chunk per entity, while the simulation goes on; events and terrain go out at once
+//! from the caller's thread. What a recording costs beyond that is rerun's: opening
+//! the file (its layout is built on another thread, see [`super::sink`]), and at the
+//! end encoding the last batch and writing the file's footer.
 
 use std::collections::HashSet;
 use std::sync::{mpsc, Arc};
@@ -38,7 +41,7 @@ use super::convert::{self, Primitive, TriMesh};
 use super::value::ValueProbe;
 use crate::env::config::PushConfig;
 use crate::env::risk::NUM_RISK_TERMS;
-use crate::env::state::roll_pitch_yaw;
+use crate::env::state::{roll_pitch_yaw, unit_quat};
 use crate::env::terrain::Terrain;
 use crate::env::{Env, StepResult};
 use crate::learn::{ActorCritic, Learner};
@@ -152,6 +155,8 @@ pub struct EpisodeLogger {
     extra_timeline: Option<(&'static str, i64)>,
     cols: Columns,
     flush_steps: usize,
+    /// Policy steps in the buffered batch.
+    steps_in_batch: usize,
     time_s: f64,
     step: i64,
     /// Frames recorded (the critic is read on every `value_every`-th).
@@ -211,6 +216,46 @@ fn log_follow_frame(rec: &RecordingStream, trunk_path: &str) -> Result<()> {
 const FOLLOW_FRAME: &str = "follow";
 
 /// Entity path of body `b` under `world/robot`.
+/// A rigid transform: `(pos, quat)` maps a child frame into its parent's
+/// (quaternions w, x, y, z, as MuJoCo stores them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Pose {
+    pos: [f64; 3],
+    quat: [f64; 4],
+}
+
+impl Pose {
+    const IDENTITY: Pose = Pose {
+        pos: [0.0; 3],
+        quat: [1.0, 0.0, 0.0, 0.0],
+    };
+
+    /// `self` after `(pos, quat)`: a pose given in this frame, in the parent's.
+    fn then(self, pos: [f64; 3], quat: [f64; 4]) -> ([f64; 3], [f64; 4]) {
+        let r = unit_quat(self.quat);
+        let p = r * nalgebra::Vector3::from(pos) + nalgebra::Vector3::from(self.pos);
+        let q = (r * unit_quat(quat)).into_inner();
+        ([p.x, p.y, p.z], [q.w, q.i, q.j, q.k])
+    }
+}
+
+/// The body whose transform draws body `b` (`b` itself, or for a body welded to its
+/// parent the nearest ancestor with a joint, the world excepted) and `b`'s frame in it.
+fn carrier(m: &crate::sim::Model, b: usize) -> (usize, Pose) {
+    let mut pose = Pose::IDENTITY;
+    let mut b = b;
+    while b != 0 && m.body_joint_count(b) == 0 && m.body_parent(b) != 0 {
+        let (pos, quat) = Pose {
+            pos: m.body_pos_m()[b],
+            quat: m.body_quat()[b],
+        }
+        .then(pose.pos, pose.quat);
+        pose = Pose { pos, quat };
+        b = m.body_parent(b);
+    }
+    (b, pose)
+}
+
 pub fn body_path(robot: &Robot, b: usize) -> String {
     let name = robot.model().name(ObjKind::Body, b);
     if name.is_empty() {
@@ -232,25 +277,28 @@ impl EpisodeLogger {
     ) -> Result<EpisodeLogger> {
         rec.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;
         let m = robot.model();
-        let mut bodies = Vec::new();
+        // A body welded to its parent (a foot to its calf) moves with it: its geoms are
+        // drawn under the parent, which saves a transform per step.
+        let carriers: Vec<(usize, Pose)> = (0..m.nbody()).map(|b| carrier(m, b)).collect();
         // Bodies that carry geoms (plus the trunk), in model order; the world body's
         // ground geoms are logged as terrain.
         let mut has_geom = vec![false; m.nbody()];
         for g in 0..m.ngeom() {
-            has_geom[m.geom_body(g)] = true;
+            has_geom[carriers[m.geom_body(g)].0] = true;
         }
         has_geom[robot.layout.trunk_body] = true;
-        for (b, _) in has_geom.iter().enumerate().skip(1).filter(|(_, h)| **h) {
-            bodies.push((b, body_path(robot, b)));
-        }
+        let bodies: Vec<(usize, String)> = has_geom
+            .iter()
+            .enumerate()
+            .skip(1)
+            .filter(|(_, h)| **h)
+            .map(|(b, _)| (b, body_path(robot, b)))
+            .collect();
         for g in 0..m.ngeom() {
-            let b = m.geom_body(g);
-            let Some(prim) = convert::geom_primitive(
-                m.geom_shape(g),
-                m.geom_size()[g],
-                m.geom_pos()[g],
-                m.geom_quat()[g],
-            ) else {
+            let (b, in_carrier) = carriers[m.geom_body(g)];
+            let (pos, quat) = in_carrier.then(m.geom_pos()[g], m.geom_quat()[g]);
+            let Some(prim) = convert::geom_primitive(m.geom_shape(g), m.geom_size()[g], pos, quat)
+            else {
                 continue;
             };
             let name = m.name(ObjKind::Geom, g);
@@ -332,6 +380,7 @@ impl EpisodeLogger {
                 ..Default::default()
             },
             flush_steps: DEFAULT_FLUSH_STEPS,
+            steps_in_batch: 0,
             time_s: 0.0,
             step: 0,
             frames: 0,
@@ -474,7 +523,11 @@ impl EpisodeLogger {
             c.value_step.push(self.step);
         }
         self.frames += 1;
-        if c.len() >= self.flush_steps {
+        // Batches hold `flush_steps` policy steps; an episode's first frame (its
+        // reset state) rides with its first steps, so a 1000-step episode makes
+        // 4 batches of 250 rather than 4 and a 1-frame remainder at the end.
+        self.steps_in_batch += result.is_some() as usize;
+        if self.steps_in_batch >= self.flush_steps {
             self.flush()?;
         }
         Ok(())
@@ -610,6 +663,7 @@ impl EpisodeLogger {
         }
         let mut cols = std::mem::take(&mut self.cols);
         self.cols.reset(self.bodies.len());
+        self.steps_in_batch = 0;
         cols.extra_timeline = self.extra_timeline;
         let ac = self
             .policy
@@ -666,10 +720,19 @@ impl Worker {
         let handle = std::thread::Builder::new()
             .name("rall-viz".into())
             .spawn(move || -> Result<()> {
-                for job in rx {
-                    send_batch(&rec, &bodies, &probe, &job.ac, job.cols)?;
-                }
-                Ok(())
+                // The critic's matmuls stay on this thread: on rayon's pool they
+                // would take the simulation's core.
+                crate::learn::mat::serial(|| {
+                    // The static rows just logged (geometry, series styles) would wait in
+                    // rerun's batcher for its next tick, which a short episode never
+                    // reaches: have them encoded now, beside the simulation, rather than
+                    // when the recording closes.
+                    rec.flush_async().context("flushing the static scene")?;
+                    for job in rx {
+                        send_batch(&rec, &bodies, &probe, &job.ac, job.cols)?;
+                    }
+                    Ok(())
+                })
             })
             .context("starting the logging thread")?;
         Ok(Worker {
@@ -845,4 +908,46 @@ pub fn log_primitive(
         )?,
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::{Data, Model};
+
+    /// Every geom drawn under its carrier body, posed by that body's world transform,
+    /// lands where MuJoCo puts it, with the legs bent away from the keyframe.
+    #[test]
+    fn geoms_of_welded_bodies_are_drawn_where_mujoco_puts_them() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        let m = Model::from_xml_path(root.join("mjcf/aliengo.xml")).unwrap();
+        let mut d = Data::new(&m).unwrap();
+        d.reset_to_keyframe(&m, "stand").unwrap();
+        for (i, q) in d.qpos_mut().iter_mut().enumerate().skip(7) {
+            *q += 0.3 * ((i as f64) * 1.7).sin();
+        }
+        d.forward(&m).unwrap();
+        let mut welded = 0;
+        for g in 0..m.ngeom() {
+            let (b, in_carrier) = carrier(&m, m.geom_body(g));
+            if b == 0 {
+                continue;
+            }
+            welded += (b != m.geom_body(g)) as usize;
+            let (pos, _) = in_carrier.then(m.geom_pos()[g], m.geom_quat()[g]);
+            let world = Pose {
+                pos: d.xpos()[b],
+                quat: d.xquat()[b],
+            };
+            let (p, _) = world.then(pos, [1.0, 0.0, 0.0, 0.0]);
+            for k in 0..3 {
+                assert!(
+                    (p[k] - d.geom_xpos()[g][k]).abs() < 1e-9,
+                    "geom {g}: {p:?} vs {:?}",
+                    d.geom_xpos()[g]
+                );
+            }
+        }
+        assert_eq!(welded, 4, "the four feet are welded to their calves");
+    }
 }

@@ -14,6 +14,9 @@ use rerun::StoreKind;
 pub struct EntitySummary {
     /// Rows with a time (one per step for per-step data).
     pub temporal_rows: u64,
+    /// Rows of each chunk of temporal rows, in file order (per-step data arrives in
+    /// batches).
+    pub temporal_chunk_rows: Vec<u64>,
     /// Static rows (geometry, styles).
     pub static_rows: u64,
     /// Component identifiers seen, e.g. `Transform3D:translation`.
@@ -78,6 +81,7 @@ pub fn summarize_rrd(path: &Path) -> Result<RrdSummary> {
                     e.static_rows += rows;
                 } else {
                     e.temporal_rows += rows;
+                    e.temporal_chunk_rows.push(rows);
                     e.timelines
                         .extend(chunk.timelines().keys().map(|t| t.to_string()));
                 }

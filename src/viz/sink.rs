@@ -4,10 +4,12 @@
 
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::thread::JoinHandle;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use rerun::{RecordingStream, RecordingStreamBuilder};
+use rerun::{RecordingStream, RecordingStreamBuilder, StoreId};
 
 /// Viewer version that reads our recordings (the SDK's minor; the previous minor reads them too).
 pub const VIEWER_PIP: &str = "pip install rerun-sdk==0.36.*";
@@ -127,12 +129,68 @@ pub fn open_recording(
                 .with_context(|| format!("connecting to the viewer at {hostport}"))?
         }
     };
-    layout.send(&rec)?;
+    send_layout_in_background(&rec, layout)?;
     Ok(rec)
+}
+
+/// Layouts being sent, by recording, until [`finish_recording`] joins them.
+type PendingLayouts = Vec<(StoreId, JoinHandle<Result<()>>)>;
+static PENDING_LAYOUTS: Mutex<PendingLayouts> = Mutex::new(Vec::new());
+
+/// Builds and sends `layout` on its own thread: rerun needs about 2.5 ms to build a
+/// blueprint (two in-memory streams), which `rall play` overlaps with building its
+/// scene. The viewer keeps the blueprint store apart from the recording, so the
+/// layout may arrive after the first data. [`finish_recording`] waits for it.
+fn send_layout_in_background(
+    rec: &RecordingStream,
+    layout: super::blueprint::Layout,
+) -> Result<()> {
+    let id = store_id(rec)?;
+    let sender = rec.clone();
+    let handle = std::thread::Builder::new()
+        .name("rall-layout".into())
+        .spawn(move || layout.send(&sender))
+        .context("starting the layout thread")?;
+    let mut pending = PENDING_LAYOUTS.lock().unwrap_or_else(|e| e.into_inner());
+    // Forget the finished sends of recordings that were dropped without finishing.
+    pending.retain(|(_, h)| !h.is_finished());
+    pending.push((id, handle));
+    Ok(())
+}
+
+fn store_id(rec: &RecordingStream) -> Result<StoreId> {
+    Ok(rec
+        .store_info()
+        .context("the recording has no store info")?
+        .store_id
+        .clone())
+}
+
+/// Waits until the layout of `rec` (if one is being sent) is in the stream.
+fn join_layout(rec: &RecordingStream) -> Result<()> {
+    // A disabled stream has no store (and no layout).
+    let Some(id) = rec.store_info().map(|i| i.store_id.clone()) else {
+        return Ok(());
+    };
+    let mine: Vec<_> = {
+        let mut pending = PENDING_LAYOUTS.lock().unwrap_or_else(|e| e.into_inner());
+        let (mine, rest) = std::mem::take(&mut *pending)
+            .into_iter()
+            .partition(|(i, _)| *i == id);
+        *pending = rest;
+        mine
+    };
+    for (_, h) in mine {
+        h.join()
+            .map_err(|_| anyhow::anyhow!("the layout thread panicked"))?
+            .context("sending the viewer layout")?;
+    }
+    Ok(())
 }
 
 /// Flushes and closes a recording (a file gets its footer; a viewer gets everything).
 pub fn finish_recording(rec: RecordingStream) -> Result<()> {
+    join_layout(&rec)?;
     rec.flush_blocking().context("flushing the recording")?;
     rec.disconnect();
     drop(rec);
