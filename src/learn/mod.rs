@@ -42,6 +42,7 @@
 pub mod actor_critic;
 pub mod adam;
 pub mod adaptation;
+pub mod amx;
 pub mod checkpoint;
 pub mod collective;
 pub mod layout;
