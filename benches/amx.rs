@@ -1,9 +1,9 @@
 //! The learner's matrix products on AMX tiles in bf16 (`learn::amx`) against the
 //! f32 kernels it uses today (`learn::mat::gemm`, AVX-512), side by side on one
 //! thread, on the shapes of one PPO shard (768 rows: a 1,536-sample mini-batch
-//! split over two threads) of the [512, 256, 128] networks. Not wired into the
-//! learner yet: a bf16 learner needs a learning curve beside the f32 one first
-//! (issue 9, item 4).
+//! split over two threads) of the [512, 256, 128] networks. The learner uses
+//! these kernels with `[learner.ppo] matmul = "bf16"` (opt-in: see the learning
+//! curves in policies/README.md).
 //!
 //! `cargo bench --bench amx` (prints "no AMX" and exits on CPUs without it).
 

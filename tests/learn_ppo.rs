@@ -273,3 +273,58 @@ fn the_update_reports_the_rates_its_steps_used() {
         }
     }
 }
+
+/// `matmul = "bf16"` changes the update's products only: acting is the same f32
+/// before the update, and one bf16 update moves the policy nearly as the f32 one.
+#[test]
+fn a_bf16_update_tracks_the_f32_one() {
+    use rall::learn::mat::Precision;
+    use rall::learn::{LrSchedule, PpoConfig};
+    let obs: Vec<f32> = (0..4 * 48)
+        .map(|i| ((i * 37) % 17) as f32 / 8.5 - 1.0)
+        .collect();
+    let dist = |a: &[f32], b: &[f32]| -> f32 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).powi(2))
+            .sum::<f32>()
+            .sqrt()
+    };
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let run = |matmul: Precision| {
+            let ppo = PpoConfig {
+                matmul,
+                schedule: LrSchedule::Fixed,
+                learning_rate: 1e-3,
+                ..PpoConfig::default()
+            };
+            let (mut learner, r) =
+                small_learner_and_rollout(critic, ppo, 6, |rng| rng.gen_range(-1.0..1.0));
+            let before = learner.act_mean(&obs);
+            let stats = learner.update(&r).unwrap();
+            (before, stats, learner.act_mean(&obs))
+        };
+        let (before32, s32, after32) = run(Precision::F32);
+        let (before16, s16, after16) = run(Precision::Bf16);
+        assert_eq!(before32, before16, "{critic:?}: acting is f32 either way");
+        let moved = dist(&after32, &before32);
+        let apart = dist(&after16, &after32);
+        assert!(
+            moved > 0.0,
+            "{critic:?}: the update did not move the policy"
+        );
+        assert!(
+            apart < 0.1 * moved,
+            "{critic:?}: bf16 {apart} from f32, moved {moved}"
+        );
+        assert!(
+            (s16.value_loss - s32.value_loss).abs() <= 0.02 * s32.value_loss.abs() + 1e-6,
+            "{critic:?}: value loss {} vs {}",
+            s16.value_loss,
+            s32.value_loss
+        );
+        if rall::learn::amx::available() {
+            assert!(apart > 0.0, "{critic:?}: bf16 ran the f32 kernels");
+        }
+    }
+}

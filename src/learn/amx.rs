@@ -110,6 +110,8 @@ fn round_up(x: usize, to: usize) -> usize {
 struct Packs {
     a: Vec<u16>,
     b: Vec<u16>,
+    /// An operand converted as it lies, before its transpose or interleave.
+    tmp: Vec<u16>,
 }
 
 thread_local! {
@@ -119,78 +121,127 @@ thread_local! {
 /// Side of the blocks transposes are done in (cache-friendly reads and writes).
 const T_BLOCK: usize = 64;
 
-/// `op(a)` (m x k) as bf16 rows of `kp` values, `mp` rows, zero-padded.
-fn pack_a(a: &[f32], a_t: bool, m: usize, k: usize, mp: usize, kp: usize, out: &mut Vec<u16>) {
+/// `dst[i] = bf16(src[i])`: 16 at a time with AVX512-BF16's `VCVTNEPS2BF16`
+/// (round to nearest even, as [`to_bf16`]; it also reads subnormals as zero).
+fn convert(src: &[f32], dst: &mut [u16]) {
+    debug_assert_eq!(src.len(), dst.len());
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512bf16") {
+        // SAFETY: the CPU has the features the function is compiled for.
+        #[allow(unsafe_code)]
+        unsafe {
+            convert_avx512bf16(src, dst)
+        };
+        return;
+    }
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d = to_bf16(s);
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[allow(unsafe_code)]
+fn convert_avx512bf16(src: &[f32], dst: &mut [u16]) {
+    use std::arch::x86_64::{__m256i, _mm256_storeu_si256, _mm512_cvtneps_pbh, _mm512_loadu_ps};
+    let n = src.len().min(dst.len());
+    let whole = n / 16 * 16;
+    for i in (0..whole).step_by(16) {
+        // SAFETY: i + 16 <= n bounds both the 16-float read and the 16-u16 write.
+        unsafe {
+            let v = _mm512_loadu_ps(src.as_ptr().add(i));
+            let h: __m256i = std::mem::transmute(_mm512_cvtneps_pbh(v));
+            _mm256_storeu_si256(dst.as_mut_ptr().add(i) as *mut __m256i, h);
+        }
+    }
+    for i in whole..n {
+        dst[i] = to_bf16(src[i]);
+    }
+}
+
+/// `src` (rows x cols, row-major) converted to bf16 into `out`.
+fn convert_rows(src: &[f32], rows: usize, cols: usize, out: &mut Vec<u16>) {
     out.clear();
-    out.resize(mp * kp, 0);
-    super::mat::with_simd(|| {
-        if a_t {
-            // a is k x m: transpose block by block.
-            for k0 in (0..k).step_by(T_BLOCK) {
-                for i0 in (0..m).step_by(T_BLOCK) {
-                    for kk in k0..(k0 + T_BLOCK).min(k) {
-                        let row = &a[kk * m..kk * m + m];
-                        for i in i0..(i0 + T_BLOCK).min(m) {
-                            out[i * kp + kk] = to_bf16(row[i]);
-                        }
-                    }
-                }
-            }
-        } else {
-            for i in 0..m {
-                let (src, dst) = (&a[i * k..i * k + k], &mut out[i * kp..i * kp + k]);
-                for (d, &s) in dst.iter_mut().zip(src) {
-                    *d = to_bf16(s);
+    out.resize(rows * cols, 0);
+    convert(&src[..rows * cols], out);
+}
+
+/// `t[c][r] = s[r][c]` for `s` rows x cols (u16), block by block.
+fn transpose_into(s: &[u16], rows: usize, cols: usize, t: &mut [u16], t_stride: usize) {
+    for r0 in (0..rows).step_by(T_BLOCK) {
+        for c0 in (0..cols).step_by(T_BLOCK) {
+            for r in r0..(r0 + T_BLOCK).min(rows) {
+                let row = &s[r * cols..r * cols + cols];
+                for c in c0..(c0 + T_BLOCK).min(cols) {
+                    t[c * t_stride + r] = row[c];
                 }
             }
         }
-    });
+    }
+}
+
+/// `op(a)` (m x k) as bf16 rows of `kp` values, `mp` rows, zero-padded.
+fn pack_a(a: &[f32], a_t: bool, m: usize, k: usize, mp: usize, kp: usize, p: &mut Packs) {
+    p.a.clear();
+    p.a.resize(mp * kp, 0);
+    if a_t {
+        // a is k x m: converted as it lies, then transposed as 16-bit values.
+        convert_rows(a, k, m, &mut p.tmp);
+        transpose_into(&p.tmp, k, m, &mut p.a, kp);
+    } else {
+        for i in 0..m {
+            convert(&a[i * k..i * k + k], &mut p.a[i * kp..i * kp + k]);
+        }
+    }
 }
 
 /// `op(b)` (k x n) in the tiles' pair-interleaved layout: row `kk / 2` holds, for
 /// every column `j`, `b[kk][j]` then `b[kk + 1][j]`; `kp / 2` rows of `2 np`.
-fn pack_b(b: &[f32], b_t: bool, k: usize, n: usize, kp: usize, np: usize, out: &mut Vec<u16>) {
-    out.clear();
-    out.resize(kp * np, 0);
+fn pack_b(b: &[f32], b_t: bool, k: usize, n: usize, kp: usize, np: usize, p: &mut Packs) {
+    p.b.clear();
+    p.b.resize(kp * np, 0);
     let width = 2 * np;
-    super::mat::with_simd(|| {
-        if b_t {
-            // b is n x k: row j holds column j of op(b), its pairs (kk, kk + 1)
-            // side by side; transpose pairs block by block.
-            for p0 in (0..k.div_ceil(2)).step_by(T_BLOCK) {
-                for j0 in (0..n).step_by(T_BLOCK) {
-                    for j in j0..(j0 + T_BLOCK).min(n) {
-                        let col = &b[j * k..j * k + k];
-                        for pair in p0..(p0 + T_BLOCK).min(k.div_ceil(2)) {
-                            let kk = 2 * pair;
-                            let dst = &mut out[pair * width + 2 * j..pair * width + 2 * j + 2];
-                            dst[0] = to_bf16(col[kk]);
-                            if kk + 1 < k {
-                                dst[1] = to_bf16(col[kk + 1]);
-                            }
+    if b_t {
+        // b is n x k: each row j holds column j of op(b) with its pairs (kk, kk + 1)
+        // side by side, so pairs move as u32 in a transpose of n x (k / 2) pairs.
+        convert_rows(b, n, k, &mut p.tmp);
+        let pairs = k.div_ceil(2);
+        super::mat::with_simd(|| {
+            for p0 in (0..pairs).step_by(T_BLOCK) {
+                for j in 0..n {
+                    let row = &p.tmp[j * k..j * k + k];
+                    for pair in p0..(p0 + T_BLOCK).min(pairs) {
+                        let kk = 2 * pair;
+                        let o = pair * width + 2 * j;
+                        p.b[o] = row[kk];
+                        if kk + 1 < k {
+                            p.b[o + 1] = row[kk + 1];
                         }
                     }
                 }
             }
-        } else {
-            // Rows kk and kk + 1 zipped into one pair-row.
+        });
+    } else {
+        // Rows kk and kk + 1 zipped into one pair-row.
+        convert_rows(b, k, n, &mut p.tmp);
+        super::mat::with_simd(|| {
             for pair in 0..k.div_ceil(2) {
-                let r0 = &b[2 * pair * n..2 * pair * n + n];
-                let dst = &mut out[pair * width..pair * width + 2 * n];
+                let r0 = &p.tmp[2 * pair * n..2 * pair * n + n];
+                let dst = &mut p.b[pair * width..pair * width + 2 * n];
                 if 2 * pair + 1 < k {
-                    let r1 = &b[(2 * pair + 1) * n..(2 * pair + 1) * n + n];
+                    let r1 = &p.tmp[(2 * pair + 1) * n..(2 * pair + 1) * n + n];
                     for ((d, &x), &y) in dst.chunks_exact_mut(2).zip(r0).zip(r1) {
-                        d[0] = to_bf16(x);
-                        d[1] = to_bf16(y);
+                        d[0] = x;
+                        d[1] = y;
                     }
                 } else {
                     for (d, &x) in dst.chunks_exact_mut(2).zip(r0) {
-                        d[0] = to_bf16(x);
+                        d[0] = x;
                     }
                 }
             }
-        }
-    });
+        });
+    }
 }
 
 /// The tile configuration (64 bytes, `LDTILECFG`'s operand).
@@ -249,8 +300,8 @@ pub fn gemm_bf16(
     );
     PACKS.with(|p| {
         let p = &mut *p.borrow_mut();
-        pack_a(a, a_t, m, k, mp, kp, &mut p.a);
-        pack_b(b, b_t, k, n, kp, np, &mut p.b);
+        pack_a(a, a_t, m, k, mp, kp, p);
+        pack_b(b, b_t, k, n, kp, np, p);
         let cfg = tile_config();
         let a_stride = kp * 2; // bytes per row of packed a
         let b_stride = np * 4; // bytes per pair-row of packed b (2 np bf16)
@@ -260,18 +311,39 @@ pub fn gemm_bf16(
         // a-tiles start at row i0 (+16) < mp and column kb * 32, and mp x kp bf16
         // are allocated; b-tiles start at pair-row kb * 16 (< kp / 2) and byte
         // column 4 * j0 (+64) < 4 np, and kp / 2 pair-rows of 4 np bytes are
-        // allocated. The store writes 16 rows of 64 bytes into `block` (32 x 32
-        // f32, rows of 128 bytes) at offsets within it.
+        // allocated. Accumulators are loaded from and stored to `c` itself only for a
+        // whole block (i0 + 32 <= m, j0 + 32 <= n: 32 rows of 32 f32 at row stride n,
+        // inside the m x n floats asserted above); otherwise stored into `block`
+        // (32 x 32 f32, rows of 128 bytes) at offsets within it.
         unsafe {
             std::arch::asm!("ldtilecfg [{}]", in(reg) &cfg as *const TileConfig);
             for i0 in (0..mp).step_by(BLOCK) {
                 for j0 in (0..np).step_by(BLOCK) {
-                    std::arch::asm!(
-                        "tilezero tmm0",
-                        "tilezero tmm1",
-                        "tilezero tmm2",
-                        "tilezero tmm3"
-                    );
+                    // A whole block of c is read and written by the tiles themselves.
+                    let whole = i0 + BLOCK <= m && j0 + BLOCK <= n;
+                    let c_block = c.as_mut_ptr().add(i0 * n + j0);
+                    let c_stride = n * 4;
+                    if whole && accumulate {
+                        std::arch::asm!(
+                            "tileloadd tmm0, [{c0} + {s} * 1]",
+                            "tileloadd tmm1, [{c1} + {s} * 1]",
+                            "tileloadd tmm2, [{c2} + {s} * 1]",
+                            "tileloadd tmm3, [{c3} + {s} * 1]",
+                            c0 = in(reg) c_block,
+                            c1 = in(reg) c_block.add(TILE_ROWS),
+                            c2 = in(reg) c_block.add(TILE_ROWS * n),
+                            c3 = in(reg) c_block.add(TILE_ROWS * n + TILE_ROWS),
+                            s = in(reg) c_stride,
+                            options(nostack),
+                        );
+                    } else {
+                        std::arch::asm!(
+                            "tilezero tmm0",
+                            "tilezero tmm1",
+                            "tilezero tmm2",
+                            "tilezero tmm3"
+                        );
+                    }
                     for kb in 0..kp / TILE_K {
                         let a0 = p.a.as_ptr().add(i0 * kp + kb * TILE_K);
                         let a1 = a0.add(TILE_ROWS * kp);
@@ -295,7 +367,11 @@ pub fn gemm_bf16(
                             options(nostack),
                         );
                     }
-                    let out = block.as_mut_ptr();
+                    let (out, stride) = if whole {
+                        (c_block, c_stride)
+                    } else {
+                        (block.as_mut_ptr(), BLOCK * 4)
+                    };
                     std::arch::asm!(
                         "tilestored [{c0} + {s} * 1], tmm0",
                         "tilestored [{c1} + {s} * 1], tmm1",
@@ -303,12 +379,14 @@ pub fn gemm_bf16(
                         "tilestored [{c3} + {s} * 1], tmm3",
                         c0 = in(reg) out,
                         c1 = in(reg) out.add(TILE_ROWS),
-                        c2 = in(reg) out.add(TILE_ROWS * BLOCK),
-                        c3 = in(reg) out.add(TILE_ROWS * BLOCK + TILE_ROWS),
-                        s = in(reg) BLOCK * 4,
+                        c2 = in(reg) out.add(TILE_ROWS * stride / 4),
+                        c3 = in(reg) out.add(TILE_ROWS * stride / 4 + TILE_ROWS),
+                        s = in(reg) stride,
                         options(nostack),
                     );
-                    write_block(&block, c, m, n, i0, j0, accumulate);
+                    if !whole {
+                        write_block(&block, c, m, n, i0, j0, accumulate);
+                    }
                 }
             }
             std::arch::asm!("tilerelease");
@@ -392,13 +470,15 @@ mod tests {
             eprintln!("no AMX on this machine: skipped");
             return;
         }
-        // Odd sizes (edges of every tile), both transposes, overwrite and accumulate.
+        // Odd sizes (edges of every tile), whole blocks (tiles read and write c
+        // directly), both transposes, overwrite and accumulate.
         for &(m, n, k) in &[
             (1, 1, 1),
             (17, 33, 45),
             (40, 12, 48),
             (70, 1, 130),
             (33, 64, 31),
+            (64, 96, 64),
         ] {
             for (a_t, b_t) in [(false, false), (true, false), (false, true), (true, true)] {
                 let a = values(m * k, 1);

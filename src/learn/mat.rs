@@ -31,6 +31,38 @@ static KERNELS: AtomicU8 = AtomicU8::new(0);
 thread_local! {
     /// Set inside [`serial`]: kernels run on the calling thread only.
     static SERIAL: Cell<bool> = const { Cell::new(false) };
+    /// Set inside [`with_precision`].
+    static PRECISION: Cell<Precision> = const { Cell::new(Precision::F32) };
+}
+
+/// Precision of [`gemm`]'s products on the calling thread.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// f32 inputs and sums (the `gemm` crate).
+    #[default]
+    F32,
+    /// Inputs rounded to bf16, products summed in f32, on AMX tiles
+    /// ([`super::amx`]); f32 where the CPU has no AMX.
+    Bf16,
+}
+
+/// Runs `f` with [`gemm`] at `precision` on the calling thread (with
+/// [`Precision::Bf16`] the kernels are single-threaded, as inside [`serial`]).
+pub fn with_precision<R>(precision: Precision, f: impl FnOnce() -> R) -> R {
+    let was = PRECISION.with(|p| p.replace(precision));
+    let out = f();
+    PRECISION.with(|p| p.set(was));
+    out
+}
+
+/// The precision [`Precision::Bf16`] actually gets on this machine (for logs).
+pub fn bf16_backend() -> &'static str {
+    if super::amx::available() {
+        "AMX tiles"
+    } else {
+        "none (no AMX-BF16 here): f32"
+    }
 }
 
 /// Runs `f` with every kernel of this module single-threaded on the calling
@@ -154,6 +186,10 @@ pub fn gemm(
     } else {
         (n as isize, 1)
     };
+    #[cfg(target_arch = "x86_64")]
+    if PRECISION.with(|p| p.get()) == Precision::Bf16 && super::amx::available() {
+        return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
+    }
     let (c, a, b) = (c.as_mut_ptr(), a.as_ptr(), b.as_ptr());
     let n_rs = n as isize;
     let serial = is_serial();

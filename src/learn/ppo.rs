@@ -14,7 +14,7 @@
 use super::actor_critic::{ActorCritic, Critic, HALF_LN_2PI};
 use super::adam::{AdamConfig, AdamState};
 use super::collective::Collective;
-use super::mat::{add_assign, serial};
+use super::mat::{add_assign, serial, with_precision, Precision};
 use super::nets::{IqnCache, MlpCache};
 use super::risk::{midpoint_taus, quantile_huber_loss};
 use super::storage::{gae, next_values, quantile_targets, Rollout};
@@ -77,6 +77,10 @@ pub struct PpoConfig {
     /// Normalise advantages to zero mean, unit std within each mini-batch.
     pub normalize_advantage_per_mini_batch: bool,
     pub adam: AdamConfig,
+    /// Precision of the update's matrix products (forward and backward of every
+    /// mini-batch): `f32`, or `bf16` (inputs rounded to bf16, sums in f32) on CPUs
+    /// with AMX tiles. Acting and evaluation stay f32.
+    pub matmul: Precision,
 }
 
 impl Default for PpoConfig {
@@ -98,6 +102,7 @@ impl Default for PpoConfig {
             grad_clip: GradClip::Global,
             normalize_advantage_per_mini_batch: true,
             adam: AdamConfig::default(),
+            matmul: Precision::F32,
         }
     }
 }
@@ -473,9 +478,13 @@ pub fn update(
             }
             let ac_ref = &*ac;
             let mb_ref = &*mb;
-            shards
-                .par_iter_mut()
-                .for_each(|shard| serial(|| shard_pass(ac_ref, mb_ref, shard, b, cfg, ccfg)));
+            shards.par_iter_mut().for_each(|shard| {
+                serial(|| {
+                    with_precision(cfg.matmul, || {
+                        shard_pass(ac_ref, mb_ref, shard, b, cfg, ccfg)
+                    })
+                })
+            });
             let (first, rest) = shards.split_at_mut(1);
             let sh0 = &mut first[0];
             for other in rest.iter().filter(|s| !s.rows.is_empty()) {

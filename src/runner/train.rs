@@ -310,6 +310,12 @@ pub fn train_in(
         let (learner, progress) = fresh_start(&cfg)?;
         (cfg, learner, progress)
     };
+    if root && cfg.learner.ppo.matmul == crate::learn::mat::Precision::Bf16 {
+        println!(
+            "update matmuls in bf16 (f32 sums): {}",
+            crate::learn::mat::bf16_backend()
+        );
+    }
     if ranks > 1 {
         // rank 0's settings and parameters on every rank (runner overrides included)
         let mut toml = cfg.to_toml().into_bytes();
