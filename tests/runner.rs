@@ -213,6 +213,66 @@ fn tracking_evaluation_of_an_untrained_policy_gives_bounded_scores() {
     assert!(r.mean_episode_length_steps > 0.0 && r.mean_episode_length_steps <= 25.0);
 }
 
+/// Every fall of a tracking evaluation has a record of how it happened: with a
+/// tilt limit of 0.02 rad robots "fall" within a few steps; each record carries
+/// the last attitude (still within that limit), its command and a full CSV row.
+#[test]
+fn tracking_evaluation_records_how_each_robot_fell() {
+    use rall::eval::{evaluate_tracking_with_falls, FallRecord};
+    let (_dir, run) = trained_run(CriticKind::Scalar);
+    let p = load_policy(&run.join(LATEST)).unwrap();
+    let mut env = tracking_env(&p.config.env);
+    env.episode.max_tilt_rad = 0.02;
+    let (r, falls) =
+        evaluate_tracking_with_falls(&p.learner, &env, 6, 2, 3, ActionMode::Mean).unwrap();
+    let fell = (r.fall_rate * r.episodes as f64).round() as usize;
+    assert!(fell > 0, "{r:?}");
+    assert_eq!(falls.len(), fell, "one record per fall");
+    let columns = FallRecord::CSV_HEADER.split(',').count();
+    for f in &falls {
+        assert!(f.env_index < 6 && f.steps >= 1, "{f:?}");
+        // the last step before the end was still within the tilt limit
+        assert!(
+            f.roll_rad.abs() <= 0.02 && f.pitch_rad.abs() <= 0.02,
+            "{f:?}"
+        );
+        assert!(f.steps_at_torque_limit <= f.steps.min(25), "{f:?}");
+        assert!(f.command.iter().all(|c| c.is_finite()));
+        assert_eq!(f.csv_row().split(',').count(), columns, "{}", f.csv_row());
+    }
+    // the same evaluation without the records gives the same report
+    assert_eq!(
+        evaluate_tracking(&p.learner, &env, 6, 2, 3, ActionMode::Mean).unwrap(),
+        r
+    );
+}
+
+#[test]
+fn fall_directions_follow_the_larger_tilt() {
+    use rall::env::EpisodeEnd;
+    use rall::eval::FallRecord;
+    let fall = |roll_rad: f64, pitch_rad: f64| FallRecord {
+        env_index: 0,
+        steps: 10,
+        end: EpisodeEnd::Tilt,
+        command: [0.5, 0.0, 0.0],
+        roll_rad,
+        pitch_rad,
+        base_lin_vel_body_mps: [0.0; 3],
+        foot_contact: [true, true, false, false],
+        steps_at_torque_limit: 3,
+        friction: Some(0.8),
+        added_base_mass_kg: 1.0,
+    };
+    assert_eq!(fall(0.1, 0.7).direction(), "nose down");
+    assert_eq!(fall(0.1, -0.7).direction(), "nose up");
+    assert_eq!(fall(1.1, 0.3).direction(), "right side down");
+    assert_eq!(fall(-1.1, 0.3).direction(), "left side down");
+    assert!(fall(0.1, 0.7)
+        .csv_row()
+        .starts_with("0,10,Tilt,nose down,0.500,"));
+}
+
 /// A run killed after its checkpoint at iteration 2 but before the next (the
 /// metrics already hold iteration 3 and half a row, `latest` is broken, a temp
 /// file is left): the resume starts from the newest readable checkpoint, cuts

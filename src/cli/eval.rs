@@ -2,15 +2,15 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 
 use crate::config::worker_threads;
 use crate::eval::report::write_outputs;
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env, ActionMode,
-    GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
-    ScenarioParams, TtfOptions,
+    evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
+    ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions,
+    RaceOptions, ScenarioParams, TtfOptions,
 };
 use crate::learn::{CriticKind, Distortion};
 use crate::runner::load_policy;
@@ -176,6 +176,11 @@ pub struct TrackingArgs {
     /// Sample actions from the policy's Gaussian as in training (default: its mean).
     #[arg(long)]
     pub stochastic: bool,
+    /// Also write how each robot fell (one CSV row per fall: command, attitude,
+    /// velocity and foot contacts at its last step, steps with a motor at its torque
+    /// limit among the last 25, randomisation draws) to this file.
+    #[arg(long, value_name = "FILE")]
+    pub falls_csv: Option<PathBuf>,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -239,7 +244,7 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     } else {
         ActionMode::Mean
     };
-    let r = evaluate_tracking(
+    let (r, falls) = evaluate_tracking_with_falls(
         &policy.learner,
         &env,
         a.episodes,
@@ -270,6 +275,30 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         "mean episode length  {:.0} / {} steps",
         r.mean_episode_length_steps, r.max_episode_length_steps
     );
+    if !falls.is_empty() {
+        let count = |d: &str| falls.iter().filter(|f| f.direction() == d).count();
+        println!(
+            "falls by direction   nose down {}, nose up {}, left side down {}, right side down {}",
+            count("nose down"),
+            count("nose up"),
+            count("left side down"),
+            count("right side down")
+        );
+    }
+    if let Some(path) = &a.falls_csv {
+        let mut text = String::from(FallRecord::CSV_HEADER);
+        text.push('\n');
+        for f in &falls {
+            text.push_str(&f.csv_row());
+            text.push('\n');
+        }
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        println!(
+            "falls                {} rows -> {}",
+            falls.len(),
+            path.display()
+        );
+    }
     Ok(())
 }
 

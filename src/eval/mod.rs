@@ -25,5 +25,8 @@ pub use scenario::{
     build_named_scenario, build_scenario, GroundKind, Load, ScenarioHook, ScenarioParams,
     ScenarioSetup, ScenarioSpec,
 };
-pub use tracking::{evaluate_tracking, tracking_env, ActionMode, TrackingReport};
+pub use tracking::{
+    evaluate_tracking, evaluate_tracking_with_falls, tracking_env, ActionMode, FallRecord,
+    TrackingReport,
+};
 pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport};

@@ -57,6 +57,107 @@ pub fn evaluate_tracking(
     seed: u64,
     mode: ActionMode,
 ) -> Result<TrackingReport> {
+    evaluate_tracking_with_falls(learner, env_cfg, episodes, threads, seed, mode).map(|(r, _)| r)
+}
+
+/// Steps before a fall over which [`FallRecord::steps_at_torque_limit`] counts.
+pub const FALL_WINDOW_STEPS: usize = 25;
+
+/// How one robot fell: the command it followed and its last state before the end.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FallRecord {
+    pub env_index: usize,
+    /// Policy steps the episode lasted.
+    pub steps: usize,
+    pub end: EpisodeEnd,
+    /// (vx m/s, vy m/s, yaw rate rad/s) at the end.
+    pub command: [f64; 3],
+    /// Attitude at the last step before the end (rad; pitch > 0: nose down,
+    /// roll > 0: right side down).
+    pub roll_rad: f64,
+    pub pitch_rad: f64,
+    /// Base velocity (body frame, m/s) at that step.
+    pub base_lin_vel_body_mps: [f64; 3],
+    /// Feet on the ground at that step (FR, FL, RR, RL: the SDK's leg order).
+    pub foot_contact: [bool; 4],
+    /// Of the last [`FALL_WINDOW_STEPS`] steps, those with a motor at its torque limit.
+    pub steps_at_torque_limit: usize,
+    /// The episode's randomisation draws.
+    pub friction: Option<f64>,
+    pub added_base_mass_kg: f64,
+}
+
+impl FallRecord {
+    /// Which way the robot went over: the larger of pitch and roll at the end.
+    pub fn direction(&self) -> &'static str {
+        if self.pitch_rad.abs() >= self.roll_rad.abs() {
+            if self.pitch_rad >= 0.0 {
+                "nose down"
+            } else {
+                "nose up"
+            }
+        } else if self.roll_rad >= 0.0 {
+            "right side down"
+        } else {
+            "left side down"
+        }
+    }
+
+    /// CSV header of [`FallRecord::csv_row`].
+    pub const CSV_HEADER: &'static str = "env,steps,end,direction,cmd_vx_mps,cmd_vy_mps,cmd_yaw_rate_rad_s,roll_rad,pitch_rad,vx_body_mps,vy_body_mps,vz_body_mps,contact_FR,contact_FL,contact_RR,contact_RL,steps_at_torque_limit_of_last_25,friction,added_base_mass_kg";
+
+    pub fn csv_row(&self) -> String {
+        let c = self.command;
+        let v = self.base_lin_vel_body_mps;
+        let f = self.foot_contact.map(|b| b as u8);
+        format!(
+            "{},{},{:?},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{},{},{},{:.3}",
+            self.env_index,
+            self.steps,
+            self.end,
+            self.direction(),
+            c[0],
+            c[1],
+            c[2],
+            self.roll_rad,
+            self.pitch_rad,
+            v[0],
+            v[1],
+            v[2],
+            f[0],
+            f[1],
+            f[2],
+            f[3],
+            self.steps_at_torque_limit,
+            self.friction.map_or(String::new(), |x| format!("{x:.3}")),
+            self.added_base_mass_kg
+        )
+    }
+}
+
+/// What [`evaluate_tracking_with_falls`] keeps of each robot's last step.
+#[derive(Clone, Copy)]
+struct LastStep {
+    command: [f64; 3],
+    roll_rad: f64,
+    pitch_rad: f64,
+    vel: [f64; 3],
+    contact: [bool; 4],
+    /// Bit i: step i back had a motor at its torque limit.
+    at_limit: u32,
+    friction: Option<f64>,
+    added_mass_kg: f64,
+}
+
+/// [`evaluate_tracking`], plus how each robot that fell in its first episode fell.
+pub fn evaluate_tracking_with_falls(
+    learner: &Learner,
+    env_cfg: &EnvConfig,
+    episodes: usize,
+    threads: usize,
+    seed: u64,
+    mode: ActionMode,
+) -> Result<(TrackingReport, Vec<FallRecord>)> {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let scene = build_scene(env_cfg, seed)?;
     let cfg = Arc::new(env_cfg.clone());
@@ -67,6 +168,10 @@ pub fn evaluate_tracking(
     envs.drain_episodes().for_each(drop);
     let (mut lin_sum, mut yaw_sum, mut samples) = (0.0, 0.0, 0usize);
     let mut obs = envs.batch().obs.clone();
+    let limits: Vec<f64> = (0..crate::robot::NUM_JOINTS)
+        .map(|j| cfg.control.torque_limit_nm(j))
+        .collect();
+    let mut last: Vec<Option<LastStep>> = vec![None; episodes];
     for _ in 0..max_steps {
         let actions = match mode {
             ActionMode::Mean => learner.act_mean(&obs),
@@ -93,6 +198,23 @@ pub fn evaluate_tracking(
             lin_sum += (-lin_err / sigma).exp();
             yaw_sum += (-yaw_err / sigma).exp();
             samples += 1;
+            let saturated = s
+                .torques_nm
+                .iter()
+                .zip(&limits)
+                .any(|(t, l)| t.abs() >= 0.99 * l);
+            let prev = last[i].map_or(0, |l| l.at_limit);
+            let draw = env.privileged_state().draw;
+            last[i] = Some(LastStep {
+                command: c,
+                roll_rad: s.roll_rad,
+                pitch_rad: s.pitch_rad,
+                vel: v,
+                contact: s.foot_contact,
+                at_limit: ((prev << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1),
+                friction: draw.friction,
+                added_mass_kg: draw.added_base_mass_kg,
+            });
         }
         if alive.iter().all(|a| !a) {
             break;
@@ -115,7 +237,28 @@ pub fn evaluate_tracking(
         .collect();
     let ended = |end: EpisodeEnd| first.iter().flatten().filter(|e| e.end == end).count();
     let n = episodes.max(1) as f64;
-    Ok(TrackingReport {
+    let falls: Vec<FallRecord> = first
+        .iter()
+        .flatten()
+        .filter(|e| e.end != EpisodeEnd::TimeOut)
+        .filter_map(|e| {
+            let l = last[e.env_index]?;
+            Some(FallRecord {
+                env_index: e.env_index,
+                steps: e.steps,
+                end: e.end,
+                command: l.command,
+                roll_rad: l.roll_rad,
+                pitch_rad: l.pitch_rad,
+                base_lin_vel_body_mps: l.vel,
+                foot_contact: l.contact,
+                steps_at_torque_limit: l.at_limit.count_ones() as usize,
+                friction: l.friction,
+                added_base_mass_kg: l.added_mass_kg,
+            })
+        })
+        .collect();
+    let report = TrackingReport {
         episodes,
         lin_vel_score: if samples > 0 {
             lin_sum / samples as f64
@@ -133,5 +276,6 @@ pub fn evaluate_tracking(
         trunk_contacts: ended(EpisodeEnd::TrunkContact),
         tilts: ended(EpisodeEnd::Tilt),
         unstable: ended(EpisodeEnd::Unstable),
-    })
+    };
+    Ok((report, falls))
 }
