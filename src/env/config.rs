@@ -333,6 +333,29 @@ impl EnvConfig {
         resolve_data_path(&self.robot_mjcf)
     }
 
+    /// The robot MJCF's text and the file it came from, found as
+    /// [`EnvConfig::robot_mjcf_path`] says; else the path tried and why it failed
+    /// (naming every place looked in when the file was found nowhere).
+    pub fn read_robot_mjcf(
+        &self,
+    ) -> Result<(std::path::PathBuf, String), (std::path::PathBuf, String)> {
+        let found = self.robot_mjcf_path();
+        let path = found
+            .clone()
+            .unwrap_or_else(|| self.robot_mjcf.clone().into());
+        match std::fs::read_to_string(&path) {
+            Ok(text) => Ok((path, text)),
+            Err(e) if found.is_none() => Err((
+                path,
+                format!(
+                    "{e}; looked in the working directory, in $RALL_HOME and in {}",
+                    env!("CARGO_MANIFEST_DIR")
+                ),
+            )),
+            Err(e) => Err((path, e.to_string())),
+        }
+    }
+
     /// Refuses impossible values with a message naming the key.
     pub fn validate(&self) -> Result<(), String> {
         self.control.validate()?;
@@ -492,8 +515,11 @@ impl EnvConfig {
 /// path as given, else under `$RALL_HOME`, else under the source tree of this build.
 pub fn resolve_data_path(path: &str) -> Option<std::path::PathBuf> {
     let p = std::path::Path::new(path);
-    if p.exists() || p.is_absolute() {
-        return p.exists().then(|| p.to_path_buf());
+    if p.exists() {
+        return Some(p.to_path_buf());
+    }
+    if p.is_absolute() {
+        return None;
     }
     let homes = [
         std::env::var_os("RALL_HOME").map(std::path::PathBuf::from),

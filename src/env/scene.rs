@@ -1,6 +1,5 @@
 //! Builds the MuJoCo scene of a task: the robot MJCF plus the ground.
 
-use std::path::Path;
 use std::sync::Arc;
 
 use super::config::EnvConfig;
@@ -17,19 +16,9 @@ pub struct Scene {
 /// Reads `cfg.robot_mjcf`, adds the ground (plane or heightfield from
 /// `cfg.terrain`, generated from `seed`) and loads it.
 pub fn build_scene(cfg: &EnvConfig, seed: u64) -> Result<Scene> {
-    let found = cfg.robot_mjcf_path();
-    let path = found.as_deref().unwrap_or(Path::new(&cfg.robot_mjcf));
-    let robot_xml = std::fs::read_to_string(path).map_err(|e| SimError::ModelFile {
-        path: path.to_path_buf(),
-        reason: if found.is_none() {
-            format!(
-                "{e}; looked in the working directory, in $RALL_HOME and in {}",
-                env!("CARGO_MANIFEST_DIR")
-            )
-        } else {
-            e.to_string()
-        },
-    })?;
+    let (path, robot_xml) = cfg
+        .read_robot_mjcf()
+        .map_err(|(path, reason)| SimError::ModelFile { path, reason })?;
     let terrain = Terrain::generate(&cfg.terrain, seed);
     let scene_xml = terrain
         .scene_xml(&robot_xml)

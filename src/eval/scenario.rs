@@ -15,7 +15,6 @@
 //! - `push`: 100 N on the trunk along a random +-x / +-y, every 300 steps for 50
 //!   (always on in `race`).
 
-use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
@@ -484,14 +483,8 @@ pub fn build_scenario(
     let env = scenario_env_config(spec, base, params);
     env.validate()
         .map_err(|e| anyhow::anyhow!("scenario {}: {e}", spec.name()))?;
-    let found = env.robot_mjcf_path();
-    let path = found.as_deref().unwrap_or(Path::new(&env.robot_mjcf));
-    let robot_xml = std::fs::read_to_string(path).with_context(|| {
-        format!(
-            "reading the robot MJCF {} (looked in the working directory, in $RALL_HOME and in {})",
-            path.display(),
-            env!("CARGO_MANIFEST_DIR")
-        )
+    let (path, robot_xml) = env.read_robot_mjcf().map_err(|(path, reason)| {
+        anyhow::anyhow!("reading the robot MJCF {}: {reason}", path.display())
     })?;
     let robot = Model::from_xml_str(&robot_xml, &path.display().to_string())?;
     let key_name = env.control.default_keyframe.clone();
