@@ -47,8 +47,8 @@ pub enum Precision {
     Bf16,
 }
 
-/// Runs `f` with [`gemm`] at `precision` on the calling thread (with
-/// [`Precision::Bf16`] the kernels are single-threaded, as inside [`serial`]).
+/// Runs `f` with [`gemm`] at `precision` on the calling thread (the AMX kernels
+/// of [`Precision::Bf16`] are single-threaded).
 pub fn with_precision<R>(precision: Precision, f: impl FnOnce() -> R) -> R {
     let was = PRECISION.with(|p| p.replace(precision));
     let out = f();
@@ -176,6 +176,10 @@ pub fn gemm(
         }
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if PRECISION.with(|p| p.get()) == Precision::Bf16 && super::amx::available() {
+        return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
+    }
     let (a_rs, a_cs) = if a_t {
         (1, m as isize)
     } else {
@@ -186,10 +190,6 @@ pub fn gemm(
     } else {
         (n as isize, 1)
     };
-    #[cfg(target_arch = "x86_64")]
-    if PRECISION.with(|p| p.get()) == Precision::Bf16 && super::amx::available() {
-        return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
-    }
     let (c, a, b) = (c.as_mut_ptr(), a.as_ptr(), b.as_ptr());
     let n_rs = n as isize;
     let serial = is_serial();

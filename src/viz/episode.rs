@@ -215,7 +215,6 @@ fn log_follow_frame(rec: &RecordingStream, trunk_path: &str) -> Result<()> {
 /// Name of the follow frame's entity under the trunk.
 const FOLLOW_FRAME: &str = "follow";
 
-/// Entity path of body `b` under `world/robot`.
 /// A rigid transform: `(pos, quat)` maps a child frame into its parent's
 /// (quaternions w, x, y, z, as MuJoCo stores them).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -230,12 +229,15 @@ impl Pose {
         quat: [1.0, 0.0, 0.0, 0.0],
     };
 
-    /// `self` after `(pos, quat)`: a pose given in this frame, in the parent's.
-    fn then(self, pos: [f64; 3], quat: [f64; 4]) -> ([f64; 3], [f64; 4]) {
+    /// `inner`, a pose given in this frame, in the parent's.
+    fn then(self, inner: Pose) -> Pose {
         let r = unit_quat(self.quat);
-        let p = r * nalgebra::Vector3::from(pos) + nalgebra::Vector3::from(self.pos);
-        let q = (r * unit_quat(quat)).into_inner();
-        ([p.x, p.y, p.z], [q.w, q.i, q.j, q.k])
+        let p = r * nalgebra::Vector3::from(inner.pos) + nalgebra::Vector3::from(self.pos);
+        let q = (r * unit_quat(inner.quat)).into_inner();
+        Pose {
+            pos: [p.x, p.y, p.z],
+            quat: [q.w, q.i, q.j, q.k],
+        }
     }
 }
 
@@ -245,17 +247,17 @@ fn carrier(m: &crate::sim::Model, b: usize) -> (usize, Pose) {
     let mut pose = Pose::IDENTITY;
     let mut b = b;
     while b != 0 && m.body_joint_count(b) == 0 && m.body_parent(b) != 0 {
-        let (pos, quat) = Pose {
+        pose = Pose {
             pos: m.body_pos_m()[b],
             quat: m.body_quat()[b],
         }
-        .then(pose.pos, pose.quat);
-        pose = Pose { pos, quat };
+        .then(pose);
         b = m.body_parent(b);
     }
     (b, pose)
 }
 
+/// Entity path of body `b` under `world/robot`.
 pub fn body_path(robot: &Robot, b: usize) -> String {
     let name = robot.model().name(ObjKind::Body, b);
     if name.is_empty() {
@@ -296,8 +298,12 @@ impl EpisodeLogger {
             .collect();
         for g in 0..m.ngeom() {
             let (b, in_carrier) = carriers[m.geom_body(g)];
-            let (pos, quat) = in_carrier.then(m.geom_pos()[g], m.geom_quat()[g]);
-            let Some(prim) = convert::geom_primitive(m.geom_shape(g), m.geom_size()[g], pos, quat)
+            let geom = in_carrier.then(Pose {
+                pos: m.geom_pos()[g],
+                quat: m.geom_quat()[g],
+            });
+            let Some(prim) =
+                convert::geom_primitive(m.geom_shape(g), m.geom_size()[g], geom.pos, geom.quat)
             else {
                 continue;
             };
@@ -934,12 +940,15 @@ mod tests {
                 continue;
             }
             welded += (b != m.geom_body(g)) as usize;
-            let (pos, _) = in_carrier.then(m.geom_pos()[g], m.geom_quat()[g]);
+            let geom = in_carrier.then(Pose {
+                pos: m.geom_pos()[g],
+                quat: m.geom_quat()[g],
+            });
             let world = Pose {
                 pos: d.xpos()[b],
                 quat: d.xquat()[b],
             };
-            let (p, _) = world.then(pos, [1.0, 0.0, 0.0, 0.0]);
+            let p = world.then(geom).pos;
             for k in 0..3 {
                 assert!(
                     (p[k] - d.geom_xpos()[g][k]).abs() < 1e-9,

@@ -145,7 +145,7 @@ fn send_layout_in_background(
     rec: &RecordingStream,
     layout: super::blueprint::Layout,
 ) -> Result<()> {
-    let id = store_id(rec)?;
+    let id = store_id(rec).context("the recording has no store info")?;
     let sender = rec.clone();
     let handle = std::thread::Builder::new()
         .name("rall-layout".into())
@@ -158,18 +158,15 @@ fn send_layout_in_background(
     Ok(())
 }
 
-fn store_id(rec: &RecordingStream) -> Result<StoreId> {
-    Ok(rec
-        .store_info()
-        .context("the recording has no store info")?
-        .store_id
-        .clone())
+/// The recording's store (`None` for a disabled stream).
+fn store_id(rec: &RecordingStream) -> Option<StoreId> {
+    rec.store_info().map(|i| i.store_id)
 }
 
 /// Waits until the layout of `rec` (if one is being sent) is in the stream.
 fn join_layout(rec: &RecordingStream) -> Result<()> {
     // A disabled stream has no store (and no layout).
-    let Some(id) = rec.store_info().map(|i| i.store_id.clone()) else {
+    let Some(id) = store_id(rec) else {
         return Ok(());
     };
     let mine: Vec<_> = {
