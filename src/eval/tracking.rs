@@ -135,20 +135,6 @@ impl FallRecord {
     }
 }
 
-/// What [`evaluate_tracking_with_falls`] keeps of each robot's last step.
-#[derive(Clone, Copy)]
-struct LastStep {
-    command: [f64; 3],
-    roll_rad: f64,
-    pitch_rad: f64,
-    vel: [f64; 3],
-    contact: [bool; 4],
-    /// Bit i: step i back had a motor at its torque limit.
-    at_limit: u32,
-    friction: Option<f64>,
-    added_mass_kg: f64,
-}
-
 /// [`evaluate_tracking`], plus how each robot that fell in its first episode fell.
 pub fn evaluate_tracking_with_falls(
     learner: &Learner,
@@ -171,7 +157,11 @@ pub fn evaluate_tracking_with_falls(
     let limits: Vec<f64> = (0..crate::robot::NUM_JOINTS)
         .map(|j| cfg.control.torque_limit_nm(j))
         .collect();
-    let mut last: Vec<Option<LastStep>> = vec![None; episodes];
+    // Each robot's last step as a fall record, completed (length, end, steps at the
+    // torque limit) once the episode's end is known; bit i of `at_limit`: i steps
+    // back a motor was at its limit.
+    let mut last: Vec<Option<FallRecord>> = vec![None; episodes];
+    let mut at_limit = vec![0u32; episodes];
     for _ in 0..max_steps {
         let actions = match mode {
             ActionMode::Mean => learner.act_mean(&obs),
@@ -203,17 +193,19 @@ pub fn evaluate_tracking_with_falls(
                 .iter()
                 .zip(&limits)
                 .any(|(t, l)| t.abs() >= 0.99 * l);
-            let prev = last[i].map_or(0, |l| l.at_limit);
-            let draw = env.privileged_state().draw;
-            last[i] = Some(LastStep {
+            at_limit[i] = ((at_limit[i] << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1);
+            last[i] = Some(FallRecord {
+                env_index: i,
+                steps: 0,
+                end: EpisodeEnd::TimeOut,
                 command: c,
                 roll_rad: s.roll_rad,
                 pitch_rad: s.pitch_rad,
-                vel: v,
-                contact: s.foot_contact,
-                at_limit: ((prev << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1),
-                friction: draw.friction,
-                added_mass_kg: draw.added_base_mass_kg,
+                base_lin_vel_body_mps: v,
+                foot_contact: s.foot_contact,
+                steps_at_torque_limit: 0,
+                friction: env.draw.friction,
+                added_base_mass_kg: env.draw.added_base_mass_kg,
             });
         }
         if alive.iter().all(|a| !a) {
@@ -242,19 +234,11 @@ pub fn evaluate_tracking_with_falls(
         .flatten()
         .filter(|e| e.end != EpisodeEnd::TimeOut)
         .filter_map(|e| {
-            let l = last[e.env_index]?;
-            Some(FallRecord {
-                env_index: e.env_index,
+            last[e.env_index].map(|f| FallRecord {
                 steps: e.steps,
                 end: e.end,
-                command: l.command,
-                roll_rad: l.roll_rad,
-                pitch_rad: l.pitch_rad,
-                base_lin_vel_body_mps: l.vel,
-                foot_contact: l.contact,
-                steps_at_torque_limit: l.at_limit.count_ones() as usize,
-                friction: l.friction,
-                added_base_mass_kg: l.added_mass_kg,
+                steps_at_torque_limit: at_limit[e.env_index].count_ones() as usize,
+                ..f
             })
         })
         .collect();
