@@ -203,6 +203,24 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         .run_dir(&shipped.runs[0])
         .join("latest.safetensors")
         .exists());
+
+    // a method config edited after its run was trained: the run is refused, naming
+    // the key, instead of being counted as done (or resumed) under the new config
+    let mut edited = common::tiny_config(CriticKind::Scalar);
+    edited.learner.ppo.entropy_coef *= 2.0;
+    std::fs::write(dir.path().join("baseline.toml"), edited.to_toml()).unwrap();
+    let err = run_state(&shipped, &shipped.runs[0]).unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(
+        msg.contains("\"Baseline\"") && msg.contains("learner.ppo.entropy_coef"),
+        "{msg}"
+    );
+    // a larger budget alone is no such change: the run continues
+    let mut longer = common::tiny_config(CriticKind::Scalar);
+    longer.runner.iterations += 5;
+    longer.runner.threads = 1;
+    std::fs::write(dir.path().join("baseline.toml"), longer.to_toml()).unwrap();
+    assert!(run_state(&shipped, &shipped.runs[0]).is_ok());
 }
 
 #[test]

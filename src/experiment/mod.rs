@@ -69,7 +69,22 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     let target = r.iterations + cfg.learner.adaptation.as_ref().map_or(0, |a| a.iterations);
     let dir = spec.run_dir(r);
     let progress = match newest_checkpoint(spec, r)? {
-        Some(path) => Some(crate::runner::load_policy(&path)?.progress),
+        Some(path) => {
+            let loaded = crate::runner::load_policy(&path)?;
+            let changed = learning_differences(&loaded.config, &cfg);
+            if !changed.is_empty() {
+                bail!(
+                    "run {:?}: its checkpoint {} was trained with another config than {} now gives \
+                     (differs in {}); move the run's directory away (and its shipped copy) to \
+                     retrain it, or give the run a new name",
+                    r.label,
+                    path.display(),
+                    r.config.display(),
+                    changed.join(", ")
+                );
+            }
+            Some(loaded.progress)
+        }
         None => None,
     };
     Ok(RunState {
@@ -77,6 +92,55 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
         target,
         progress,
     })
+}
+
+/// Dotted keys in which two run configs differ, leaving out the runner keys that
+/// do not change what is learned (budget, threads, logging and checkpoint cadence)
+/// and the history group RMA's phase 2 adds.
+pub fn learning_differences(a: &TrainConfig, b: &TrainConfig) -> Vec<String> {
+    let comparable = |c: &TrainConfig| {
+        let mut c = c.clone();
+        c.runner.iterations = 0;
+        c.runner.threads = 0;
+        c.runner.save_interval = 1;
+        c.runner.log_interval = 1;
+        c.runner.runs_dir.clear();
+        // RMA's phase 2 adds the history group itself (runner::adapt)
+        if c.learner.adaptation.is_some() {
+            let history = crate::env::observation::ObsGroup::History;
+            c.env.observation.groups.retain(|g| *g != history);
+        }
+        toml::Value::try_from(c).ok()
+    };
+    let mut out = Vec::new();
+    match (comparable(a), comparable(b)) {
+        (Some(x), Some(y)) => value_differences("", &x, &y, &mut out),
+        _ => out.push("(a config that cannot be written as TOML)".into()),
+    }
+    out
+}
+
+fn value_differences(at: &str, a: &toml::Value, b: &toml::Value, out: &mut Vec<String>) {
+    match (a, b) {
+        (toml::Value::Table(x), toml::Value::Table(y)) => {
+            let mut keys: Vec<&String> = x.keys().chain(y.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            for k in keys {
+                let key = if at.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{at}.{k}")
+                };
+                match (x.get(k), y.get(k)) {
+                    (Some(u), Some(v)) => value_differences(&key, u, v, out),
+                    _ => out.push(key),
+                }
+            }
+        }
+        _ if a != b => out.push(at.to_string()),
+        _ => {}
+    }
 }
 
 /// Files of a run that travel with its checkpoint.
