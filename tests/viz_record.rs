@@ -464,6 +464,38 @@ fn cli_play_takes_the_env_from_a_config_file() {
 }
 
 #[test]
+fn cli_play_whose_scene_cannot_be_built_leaves_no_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
+    let mut env = small_cfg(CriticKind::Iqn).env;
+    env.robot_mjcf = "mjcf/no-such-robot.xml".into();
+    let scenario = dir.path().join("missing.toml");
+    let text = toml::to_string(&toml::Table::from_iter([(
+        "env".to_string(),
+        toml::Value::try_from(&env).unwrap(),
+    )]))
+    .unwrap();
+    std::fs::write(&scenario, text).unwrap();
+    let out_path = dir.path().join("missing.rrd");
+    let out = rall(dir.path())
+        .args(["play", "--checkpoint"])
+        .arg(&ckpt)
+        .arg("--config")
+        .arg(&scenario)
+        .arg("--save")
+        .arg(&out_path)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("no-such-robot.xml") && err.contains("nothing recorded"),
+        "{err}"
+    );
+    assert!(!out_path.exists(), "a partial recording was left behind");
+}
+
+#[test]
 fn cli_play_without_a_viewer_fails_fast_with_what_to_do() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));

@@ -119,7 +119,18 @@ pub fn run(args: &PlayArgs) -> Result<()> {
         scenario: args.scenario.clone(),
         ..PlayOptions::default()
     };
-    let (report, rec) = viz::play(&loaded.learner, &env_cfg, &opts, Some(rec))?;
+    let (report, rec) = match viz::play(&loaded.learner, &env_cfg, &opts, Some(rec)) {
+        Ok(played) => played,
+        Err(e) => {
+            // a recording cut short (e.g. the scene did not build) is not left behind
+            if let RerunTarget::Save(path) = &target {
+                if std::fs::remove_file(path).is_ok() {
+                    return Err(e.context(format!("nothing recorded: removed {}", path.display())));
+                }
+            }
+            return Err(e);
+        }
+    };
     if let Some(rec) = rec {
         viz::finish_recording(rec)?;
     }
