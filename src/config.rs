@@ -27,6 +27,22 @@ pub struct RunnerConfig {
     pub seed: u64,
     /// Parent folder of run directories.
     pub runs_dir: String,
+    /// A last training stage at lower exploration noise (none by default).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub action_std_reset: Option<ActionStdReset>,
+}
+
+/// After iteration `after_iteration`, the policy's action std is set to
+/// `action_std` in every dimension (its Adam moments start again from zero),
+/// and PPO goes on from there: a stage that trains the policy's mean under the
+/// noise it will be judged closer to. Applied once, at the start of iteration
+/// `after_iteration + 1`, so a run resumed from any checkpoint applies it exactly
+/// as an uninterrupted one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ActionStdReset {
+    pub after_iteration: usize,
+    pub action_std: f32,
 }
 
 impl Default for RunnerConfig {
@@ -40,6 +56,7 @@ impl Default for RunnerConfig {
             threads: 0,
             seed: 1,
             runs_dir: "runs".into(),
+            action_std_reset: None,
         }
     }
 }
@@ -129,6 +146,13 @@ impl TrainConfig {
             r.log_interval > 0,
             "invalid [runner] value: runner.log_interval must be at least 1"
         );
+        if let Some(reset) = &r.action_std_reset {
+            anyhow::ensure!(
+                reset.action_std.is_finite() && reset.action_std > 0.0,
+                "invalid [runner] value: runner.action_std_reset.action_std must be a positive number, got {}",
+                reset.action_std
+            );
+        }
         let batch = r.num_envs * r.steps_per_env;
         anyhow::ensure!(
             batch >= self.learner.ppo.num_mini_batches,

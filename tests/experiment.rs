@@ -221,6 +221,23 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     longer.runner.threads = 1;
     std::fs::write(dir.path().join("baseline.toml"), longer.to_toml()).unwrap();
     assert!(run_state(&shipped, &shipped.runs[0]).is_ok());
+    // a last stage not reached yet is added by training on; one already passed is a change
+    for (after_iteration, ok) in [(1000, true), (0, false)] {
+        let mut staged = longer.clone();
+        staged.runner.action_std_reset = Some(rall::config::ActionStdReset {
+            after_iteration,
+            action_std: 0.5,
+        });
+        std::fs::write(dir.path().join("baseline.toml"), staged.to_toml()).unwrap();
+        let state = run_state(&shipped, &shipped.runs[0]);
+        assert_eq!(state.is_ok(), ok, "after {after_iteration}: {state:?}");
+        if let Err(e) = state {
+            assert!(
+                format!("{e:#}").contains("runner.action_std_reset"),
+                "{e:#}"
+            );
+        }
+    }
 }
 
 #[test]

@@ -404,3 +404,72 @@ fn rough_checkpoints_store_every_envs_terrain_level() {
         .terrain_levels
         .is_none());
 }
+
+#[test]
+fn an_action_std_reset_applies_once_and_a_resumed_run_adds_it_identically() {
+    let dir = tempfile::tempdir().unwrap();
+    let with_reset = |iterations: usize| {
+        let mut c = tiny_config(CriticKind::Iqn);
+        c.runner.iterations = iterations;
+        c.runner.action_std_reset = Some(rall::config::ActionStdReset {
+            after_iteration: 2,
+            action_std: 0.3,
+        });
+        c
+    };
+    let std_at = |run: &Path, it: usize| -> Vec<f32> {
+        let p = run.join(format!("checkpoints/model_{it:06}.safetensors"));
+        let l = load_policy(&p).unwrap().learner;
+        l.actor_critic()
+            .actor
+            .log_std()
+            .iter()
+            .map(|l| l.exp())
+            .collect()
+    };
+    // configured from the start (resumed at 2, as a resume rebuilds the envs):
+    // iterations 1-2 at the initial std, 3-4 from 0.3
+    let whole = dir.path().join("whole");
+    train(with_reset(2), &whole, false, no_stop(), &mut ()).unwrap();
+    train(with_reset(4), &whole, true, no_stop(), &mut ()).unwrap();
+    assert!(std_at(&whole, 2).iter().all(|s| (s - 1.0).abs() < 0.05));
+    for it in [3, 4] {
+        let s = std_at(&whole, it);
+        assert!(
+            s.iter().all(|s| (s - 0.3).abs() < 0.03),
+            "iteration {it}: {s:?}"
+        );
+    }
+    // a run started without the stage gets it on resume at iteration 2: the same weights
+    let added = dir.path().join("added");
+    train(
+        tiny_config(CriticKind::Iqn),
+        &added,
+        false,
+        no_stop(),
+        &mut (),
+    )
+    .unwrap();
+    train(with_reset(4), &added, true, no_stop(), &mut ()).unwrap();
+    let weights = |run: &Path| load_checkpoint(&run.join(LATEST)).unwrap().0;
+    let (a, b) = (weights(&whole), weights(&added));
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!((&x.name, &x.data), (&y.name, &y.data));
+    }
+    let stored = load_policy(&added.join(LATEST)).unwrap().config;
+    assert_eq!(
+        stored.runner.action_std_reset,
+        with_reset(4).runner.action_std_reset
+    );
+    // ... but not to a run already past it
+    let past = dir.path().join("past");
+    let mut three = tiny_config(CriticKind::Iqn);
+    three.runner.iterations = 3;
+    train(three, &past, false, no_stop(), &mut ()).unwrap();
+    let err = train(with_reset(4), &past, true, no_stop(), &mut ()).unwrap_err();
+    assert!(
+        format!("{err:#}").contains("before the checkpoint's iteration 3"),
+        "{err:#}"
+    );
+}

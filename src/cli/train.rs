@@ -7,7 +7,7 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
-use crate::config::TrainConfig;
+use crate::config::{ActionStdReset, TrainConfig};
 use crate::learn::CriticKind;
 use crate::runner::{train_in, RunDir, World, LATEST};
 use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
@@ -38,6 +38,11 @@ pub struct TrainArgs {
     /// Checkpoint every K iterations.
     #[arg(long)]
     pub save_interval: Option<usize>,
+    /// A last stage: after iteration IT, set the action std to STD and train on
+    /// (`runner.action_std_reset`). With --resume, it can be added to a run that has
+    /// not passed IT.
+    #[arg(long, value_name = "IT:STD", value_parser = parse_std_reset)]
+    pub action_std_reset: Option<ActionStdReset>,
     /// Run directory (default: <runs_dir>/<config name>-<critic>-eta<eta>-s<seed>).
     #[arg(long)]
     pub run_dir: Option<PathBuf>,
@@ -99,6 +104,17 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
                     .with_context(|| format!("cannot resume {}", dir.display()))?,
             };
             apply_runner_overrides(&mut cfg, args);
+            if let Some(reset) = args.action_std_reset {
+                match cfg.runner.action_std_reset {
+                    Some(had) if had != reset => bail!(
+                        "{} already resets the action std after iteration {} (to {}): a run has one such stage",
+                        dir.display(),
+                        had.after_iteration,
+                        had.action_std
+                    ),
+                    _ => cfg.runner.action_std_reset = Some(reset),
+                }
+            }
             cfg.validate().context("after command-line overrides")?;
             (cfg, dir.clone(), true)
         }
@@ -110,6 +126,9 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
             let mut cfg = TrainConfig::from_toml_file(&config)?;
             apply_run_overrides(&mut cfg, args);
             apply_runner_overrides(&mut cfg, args);
+            if let Some(reset) = args.action_std_reset {
+                cfg.runner.action_std_reset = Some(reset);
+            }
             cfg.validate().context("after command-line overrides")?;
             let run_dir = run_dir
                 .clone()
@@ -208,6 +227,27 @@ fn apply_runner_overrides(cfg: &mut TrainConfig, args: &TrainArgs) {
     if let Some(k) = args.save_interval {
         cfg.runner.save_interval = k;
     }
+}
+
+fn parse_std_reset(s: &str) -> Result<ActionStdReset, String> {
+    let (it, std) = s
+        .split_once(':')
+        .ok_or_else(|| format!("expected IT:STD (e.g. 3000:0.5), got {s:?}"))?;
+    let after_iteration = it
+        .trim()
+        .parse()
+        .map_err(|e| format!("iteration {it:?}: {e}"))?;
+    let action_std: f32 = std
+        .trim()
+        .parse()
+        .map_err(|e| format!("action std {std:?}: {e}"))?;
+    if !(action_std.is_finite() && action_std > 0.0) {
+        return Err(format!("the action std must be positive, got {action_std}"));
+    }
+    Ok(ActionStdReset {
+        after_iteration,
+        action_std,
+    })
 }
 
 fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {

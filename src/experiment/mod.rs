@@ -71,7 +71,16 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     let progress = match newest_checkpoint(spec, r)? {
         Some(path) => {
             let loaded = crate::runner::load_policy(&path)?;
-            let changed = learning_differences(&loaded.config, &cfg);
+            let mut stored = loaded.config.clone();
+            // a last stage added after the run was started, not yet reached: training adds it
+            if let (None, Some(reset)) =
+                (stored.runner.action_std_reset, cfg.runner.action_std_reset)
+            {
+                if reset.after_iteration >= loaded.progress.iteration {
+                    stored.runner.action_std_reset = Some(reset);
+                }
+            }
+            let changed = learning_differences(&stored, &cfg);
             if !changed.is_empty() {
                 bail!(
                     "run {:?}: its checkpoint {} was trained with another config than {} now gives \

@@ -370,6 +370,16 @@ impl Learner {
         self.ac.act_dim()
     }
     /// Current Adam learning rate (changed by the adaptive schedule).
+    /// Sets the action std to `std` in every dimension and clears the Adam
+    /// moments of the log-std, so its updates start afresh at the new level.
+    pub fn reset_action_std(&mut self, std: f32) {
+        let off = self.ac.actor.log_std_offset();
+        let dims = off..off + self.ac.act_dim();
+        self.ac.actor.params.data[dims.clone()].fill(std.ln());
+        self.opt.actor.m[dims.clone()].fill(0.0);
+        self.opt.actor.v[dims].fill(0.0);
+    }
+
     pub fn learning_rate(&self) -> f32 {
         self.opt.lr
     }

@@ -277,7 +277,17 @@ pub fn train_in(
     }
     let resume = resumed.is_some();
     let (mut cfg, mut learner, mut progress) = if let Some(loaded) = resumed {
+        let had_reset = loaded.config.runner.action_std_reset.is_some();
         let stored = keep_runner_settings(loaded.config, &cfg);
+        if let (false, Some(reset)) = (had_reset, stored.runner.action_std_reset) {
+            anyhow::ensure!(
+                reset.after_iteration >= loaded.progress.iteration,
+                "runner.action_std_reset.after_iteration = {} is before the checkpoint's iteration {} ({}): the stage can only be added to a run that has not passed it",
+                reset.after_iteration,
+                loaded.progress.iteration,
+                path.display()
+            );
+        }
         if root {
             println!(
                 "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
@@ -411,6 +421,21 @@ pub fn train_in(
         if stop_votes[0] > 0.0 {
             interrupted = true;
             break;
+        }
+        if let Some(reset) = r.action_std_reset {
+            if progress.iteration == reset.after_iteration {
+                learner.reset_action_std(reset.action_std);
+                if root {
+                    log_line(
+                        &bar,
+                        format!(
+                            "iteration {}: action std set to {} for the rest of the run (runner.action_std_reset)",
+                            progress.iteration + 1,
+                            reset.action_std
+                        ),
+                    );
+                }
+            }
         }
         // --- collection ---
         let t0 = Instant::now();
@@ -614,6 +639,10 @@ fn fresh_start(cfg: &TrainConfig) -> Result<(Learner, Progress)> {
 /// A stored run config with this invocation's runner settings, the ones that
 /// do not change what is learned (they may differ on resume).
 fn keep_runner_settings(mut stored: TrainConfig, now: &TrainConfig) -> TrainConfig {
+    // a stage added to a run that had none (checked against the run's progress)
+    if stored.runner.action_std_reset.is_none() {
+        stored.runner.action_std_reset = now.runner.action_std_reset;
+    }
     stored.runner.iterations = now.runner.iterations;
     stored.runner.threads = now.runner.threads;
     stored.runner.save_interval = now.runner.save_interval;
