@@ -245,6 +245,26 @@ fn tracking_evaluation_records_how_each_robot_fell() {
         evaluate_tracking(&p.learner, &env, 6, 2, 3, ActionMode::Mean).unwrap(),
         r
     );
+    // commands resampled every 5 steps: a robot that falls later than that fell on a
+    // command it had followed for at most 5 steps, with the one before it recorded
+    env.commands.resample_interval_s = 0.1;
+    env.episode.max_tilt_rad = 0.05;
+    let (_, falls) =
+        evaluate_tracking_with_falls(&p.learner, &env, 12, 2, 5, ActionMode::Mean).unwrap();
+    assert!(falls.iter().any(|f| f.steps > 5), "{falls:?}");
+    for f in &falls {
+        assert!(f.steps_since_command_change <= f.steps, "{f:?}");
+        if f.steps > 5 {
+            assert!(f.previous_command.is_some(), "{f:?}");
+            assert!((1..=5).contains(&f.steps_since_command_change), "{f:?}");
+        } else {
+            assert_eq!(
+                (f.previous_command, f.steps_since_command_change),
+                (None, f.steps)
+            );
+        }
+        assert_eq!(f.csv_row().split(',').count(), columns, "{}", f.csv_row());
+    }
 }
 
 #[test]
@@ -261,6 +281,8 @@ fn fall_directions_follow_the_larger_tilt() {
         base_lin_vel_body_mps: [0.0; 3],
         foot_contact: [true, true, false, false],
         steps_at_torque_limit: 3,
+        steps_since_command_change: 10,
+        previous_command: None,
         friction: Some(0.8),
         added_base_mass_kg: 1.0,
     };

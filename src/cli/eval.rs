@@ -178,7 +178,8 @@ pub struct TrackingArgs {
     pub stochastic: bool,
     /// Also write how each robot fell (one CSV row per fall: command, attitude,
     /// velocity and foot contacts at its last step, steps with a motor at its torque
-    /// limit among the last 25, randomisation draws) to this file.
+    /// limit among the last 25, steps since the command last changed and the command
+    /// before it, randomisation draws) to this file.
     #[arg(long, value_name = "FILE")]
     pub falls_csv: Option<PathBuf>,
 }

@@ -82,6 +82,11 @@ pub struct FallRecord {
     pub foot_contact: [bool; 4],
     /// Of the last [`FALL_WINDOW_STEPS`] steps, those with a motor at its torque limit.
     pub steps_at_torque_limit: usize,
+    /// Steps the robot followed its last command before the end (the whole episode
+    /// when the command never changed).
+    pub steps_since_command_change: usize,
+    /// The command before the last change (`None`: it never changed).
+    pub previous_command: Option<[f64; 3]>,
     /// The episode's randomisation draws.
     pub friction: Option<f64>,
     pub added_base_mass_kg: f64,
@@ -104,14 +109,18 @@ impl FallRecord {
     }
 
     /// CSV header of [`FallRecord::csv_row`].
-    pub const CSV_HEADER: &'static str = "env,steps,end,direction,cmd_vx_mps,cmd_vy_mps,cmd_yaw_rate_rad_s,roll_rad,pitch_rad,vx_body_mps,vy_body_mps,vz_body_mps,contact_FR,contact_FL,contact_RR,contact_RL,steps_at_torque_limit_of_last_25,friction,added_base_mass_kg";
+    pub const CSV_HEADER: &'static str = "env,steps,end,direction,cmd_vx_mps,cmd_vy_mps,cmd_yaw_rate_rad_s,roll_rad,pitch_rad,vx_body_mps,vy_body_mps,vz_body_mps,contact_FR,contact_FL,contact_RR,contact_RL,steps_at_torque_limit_of_last_25,steps_since_command_change,prev_cmd_vx_mps,prev_cmd_vy_mps,prev_cmd_yaw_rate_rad_s,friction,added_base_mass_kg";
 
     pub fn csv_row(&self) -> String {
         let c = self.command;
         let v = self.base_lin_vel_body_mps;
         let f = self.foot_contact.map(|b| b as u8);
+        let prev = match self.previous_command {
+            Some(p) => format!("{:.3},{:.3},{:.3}", p[0], p[1], p[2]),
+            None => ",,".to_string(),
+        };
         format!(
-            "{},{},{:?},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{},{},{},{:.3}",
+            "{},{},{:?},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3}",
             self.env_index,
             self.steps,
             self.end,
@@ -129,6 +138,8 @@ impl FallRecord {
             f[2],
             f[3],
             self.steps_at_torque_limit,
+            self.steps_since_command_change,
+            prev,
             self.friction.map_or(String::new(), |x| format!("{x:.3}")),
             self.added_base_mass_kg
         )
@@ -162,7 +173,10 @@ pub fn evaluate_tracking_with_falls(
     // back a motor was at its limit.
     let mut last: Vec<Option<FallRecord>> = vec![None; episodes];
     let mut at_limit = vec![0u32; episodes];
-    for _ in 0..max_steps {
+    // per robot: the command followed, the step it started, and the one before it
+    let mut followed: Vec<Option<([f64; 3], usize)>> = vec![None; episodes];
+    let mut previous: Vec<Option<[f64; 3]>> = vec![None; episodes];
+    for step in 0..max_steps {
         let actions = match mode {
             ActionMode::Mean => learner.act_mean(&obs),
             ActionMode::Sampled => learner.act(&obs, &mut rng).actions,
@@ -194,6 +208,14 @@ pub fn evaluate_tracking_with_falls(
                 .zip(&limits)
                 .any(|(t, l)| t.abs() >= 0.99 * l);
             at_limit[i] = ((at_limit[i] << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1);
+            match followed[i] {
+                Some((before, _)) if before == c => {}
+                Some((before, _)) => {
+                    previous[i] = Some(before);
+                    followed[i] = Some((c, step));
+                }
+                None => followed[i] = Some((c, step)),
+            }
             last[i] = Some(FallRecord {
                 env_index: i,
                 steps: 0,
@@ -204,6 +226,8 @@ pub fn evaluate_tracking_with_falls(
                 base_lin_vel_body_mps: v,
                 foot_contact: s.foot_contact,
                 steps_at_torque_limit: 0,
+                steps_since_command_change: 0,
+                previous_command: previous[i],
                 friction: env.draw.friction,
                 added_base_mass_kg: env.draw.added_base_mass_kg,
             });
@@ -238,6 +262,8 @@ pub fn evaluate_tracking_with_falls(
                 steps: e.steps,
                 end: e.end,
                 steps_at_torque_limit: at_limit[e.env_index].count_ones() as usize,
+                steps_since_command_change: e.steps
+                    - followed[e.env_index].map_or(0, |(_, from)| from.min(e.steps)),
                 ..f
             })
         })
