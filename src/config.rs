@@ -45,6 +45,26 @@ pub struct ActionStdReset {
     pub action_std: f32,
 }
 
+impl RunnerConfig {
+    /// Takes on `stage` when this run (at `iteration`) has none; refused when the
+    /// run has already passed it. A run that has a stage keeps its own.
+    pub fn add_action_std_reset(
+        &mut self,
+        stage: Option<ActionStdReset>,
+        iteration: usize,
+    ) -> Result<()> {
+        if let (None, Some(stage)) = (self.action_std_reset, stage) {
+            anyhow::ensure!(
+                stage.after_iteration >= iteration,
+                "runner.action_std_reset.after_iteration = {} is before the checkpoint's iteration {iteration}: the stage can only be added to a run that has not passed it",
+                stage.after_iteration
+            );
+            self.action_std_reset = Some(stage);
+        }
+        Ok(())
+    }
+}
+
 impl Default for RunnerConfig {
     fn default() -> Self {
         RunnerConfig {

@@ -402,6 +402,31 @@ fn rall(dir: &Path) -> Command {
     c
 }
 
+/// A config file holding only `[env]` (what `rall play --config` reads).
+fn env_file(dir: &Path, name: &str, env: &rall::env::EnvConfig) -> PathBuf {
+    let path = dir.join(name);
+    let text = toml::to_string(&toml::Table::from_iter([(
+        "env".to_string(),
+        toml::Value::try_from(env).unwrap(),
+    )]))
+    .unwrap();
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// `rall play --checkpoint CKPT --config CONFIG --save OUT`.
+fn play_saving(dir: &Path, ckpt: &Path, config: &Path, out: &Path) -> std::process::Output {
+    rall(dir)
+        .args(["play", "--checkpoint"])
+        .arg(ckpt)
+        .arg("--config")
+        .arg(config)
+        .arg("--save")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn cli_play_saves_a_recording() {
     let dir = tempfile::tempdir().unwrap();
@@ -430,25 +455,11 @@ fn cli_play_takes_the_env_from_a_config_file() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
     // A scenario: rough ground instead of the checkpoint's flat ground.
-    let scenario = dir.path().join("scenario.toml");
     let mut env = rough_cfg().env;
     env.episode.length_s = 0.2;
-    let text = toml::to_string(&toml::Table::from_iter([(
-        "env".to_string(),
-        toml::Value::try_from(&env).unwrap(),
-    )]))
-    .unwrap();
-    std::fs::write(&scenario, text).unwrap();
+    let scenario = env_file(dir.path(), "scenario.toml", &env);
     let out_path = dir.path().join("scenario.rrd");
-    let out = rall(dir.path())
-        .args(["play", "--checkpoint"])
-        .arg(&ckpt)
-        .arg("--config")
-        .arg(&scenario)
-        .arg("--save")
-        .arg(&out_path)
-        .output()
-        .unwrap();
+    let out = play_saving(dir.path(), &ckpt, &scenario, &out_path);
     assert!(
         out.status.success(),
         "{}",
@@ -469,23 +480,9 @@ fn cli_play_whose_scene_cannot_be_built_leaves_no_recording() {
     let ckpt = checkpoint(dir.path(), &small_cfg(CriticKind::Iqn));
     let mut env = small_cfg(CriticKind::Iqn).env;
     env.robot_mjcf = "mjcf/no-such-robot.xml".into();
-    let scenario = dir.path().join("missing.toml");
-    let text = toml::to_string(&toml::Table::from_iter([(
-        "env".to_string(),
-        toml::Value::try_from(&env).unwrap(),
-    )]))
-    .unwrap();
-    std::fs::write(&scenario, text).unwrap();
+    let scenario = env_file(dir.path(), "missing.toml", &env);
     let out_path = dir.path().join("missing.rrd");
-    let out = rall(dir.path())
-        .args(["play", "--checkpoint"])
-        .arg(&ckpt)
-        .arg("--config")
-        .arg(&scenario)
-        .arg("--save")
-        .arg(&out_path)
-        .output()
-        .unwrap();
+    let out = play_saving(dir.path(), &ckpt, &scenario, &out_path);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(

@@ -73,13 +73,10 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
             let loaded = crate::runner::load_policy(&path)?;
             let mut stored = loaded.config.clone();
             // a last stage added after the run was started, not yet reached: training adds it
-            if let (None, Some(reset)) =
-                (stored.runner.action_std_reset, cfg.runner.action_std_reset)
-            {
-                if reset.after_iteration >= loaded.progress.iteration {
-                    stored.runner.action_std_reset = Some(reset);
-                }
-            }
+            stored
+                .runner
+                .add_action_std_reset(cfg.runner.action_std_reset, loaded.progress.iteration)
+                .with_context(|| format!("run {:?} ({})", r.label, path.display()))?;
             let changed = learning_differences(&stored, &cfg);
             if !changed.is_empty() {
                 bail!(

@@ -369,7 +369,6 @@ impl Learner {
     pub fn act_dim(&self) -> usize {
         self.ac.act_dim()
     }
-    /// Current Adam learning rate (changed by the adaptive schedule).
     /// Sets the action std to `std` in every dimension and clears the Adam
     /// moments of the log-std, so its updates start afresh at the new level.
     pub fn reset_action_std(&mut self, std: f32) {
@@ -380,6 +379,7 @@ impl Learner {
         self.opt.actor.v[dims].fill(0.0);
     }
 
+    /// Current Adam learning rate (changed by the adaptive schedule).
     pub fn learning_rate(&self) -> f32 {
         self.opt.lr
     }

@@ -258,7 +258,7 @@ pub fn train_in(
                     "{} was stopped before its first checkpoint: starting it again from its config.toml",
                     dir.root.display()
                 );
-                cfg = keep_runner_settings(stored, &cfg);
+                cfg = keep_runner_settings(stored, &cfg, 0)?;
             }
         }
     }
@@ -277,17 +277,8 @@ pub fn train_in(
     }
     let resume = resumed.is_some();
     let (mut cfg, mut learner, mut progress) = if let Some(loaded) = resumed {
-        let had_reset = loaded.config.runner.action_std_reset.is_some();
-        let stored = keep_runner_settings(loaded.config, &cfg);
-        if let (false, Some(reset)) = (had_reset, stored.runner.action_std_reset) {
-            anyhow::ensure!(
-                reset.after_iteration >= loaded.progress.iteration,
-                "runner.action_std_reset.after_iteration = {} is before the checkpoint's iteration {} ({}): the stage can only be added to a run that has not passed it",
-                reset.after_iteration,
-                loaded.progress.iteration,
-                path.display()
-            );
-        }
+        let stored = keep_runner_settings(loaded.config, &cfg, loaded.progress.iteration)
+            .with_context(|| format!("resuming from {}", path.display()))?;
         if root {
             println!(
                 "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
@@ -637,17 +628,22 @@ fn fresh_start(cfg: &TrainConfig) -> Result<(Learner, Progress)> {
 }
 
 /// A stored run config with this invocation's runner settings, the ones that
-/// do not change what is learned (they may differ on resume).
-fn keep_runner_settings(mut stored: TrainConfig, now: &TrainConfig) -> TrainConfig {
-    // a stage added to a run that had none (checked against the run's progress)
-    if stored.runner.action_std_reset.is_none() {
-        stored.runner.action_std_reset = now.runner.action_std_reset;
-    }
+/// do not change what is learned (they may differ on resume), and this
+/// invocation's last stage if the run had none and is at most at its iteration.
+fn keep_runner_settings(
+    mut stored: TrainConfig,
+    now: &TrainConfig,
+    iteration: usize,
+) -> Result<TrainConfig> {
+    // a last stage added to a run that had none and has not passed it
+    stored
+        .runner
+        .add_action_std_reset(now.runner.action_std_reset, iteration)?;
     stored.runner.iterations = now.runner.iterations;
     stored.runner.threads = now.runner.threads;
     stored.runner.save_interval = now.runner.save_interval;
     stored.runner.log_interval = now.runner.log_interval;
-    stored
+    Ok(stored)
 }
 
 /// " on N ranks" for N > 1.
