@@ -242,14 +242,19 @@ pub fn gemm(
 pub fn exp_nonpos(x: f32) -> f32 {
     let x = x.clamp(-87.0, 0.0);
     let t = x * std::f32::consts::LOG2_E;
-    // round to nearest with the 1.5*2^23 trick (no SSE4.1 `round` needed)
-    let n = (t + 12_582_912.0) - 12_582_912.0;
+    // round to nearest with the 1.5*2^23 trick (no SSE4.1 `round` needed): the
+    // low mantissa bits of `r` hold n (two's complement), -126 <= n <= 0
+    let r = t + 12_582_912.0;
+    let n = r - 12_582_912.0;
     let y = (t - n) * std::f32::consts::LN_2; // |y| <= ln2/2
     let p = 1.0
         + y * (1.0
             + y * (0.5
                 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
-    let scale = f32::from_bits((((n as i32) + 127) << 23) as u32);
+    // 2^n built from those bits with integer lane operations (a float-to-int
+    // cast here kept the loops from vectorising): shifting by 23 drops every bit
+    // of r above its low 9, leaving the biased exponent n + 127 in place
+    let scale = f32::from_bits(r.to_bits().wrapping_add(127) << 23);
     p * scale
 }
 
@@ -346,6 +351,23 @@ mod tests {
             x += 0.013;
         }
         assert_eq!(exp_nonpos(0.0), 1.0);
+        // the same bits as building 2^n from a cast of n (the first version)
+        let by_cast = |x: f32| {
+            let t = x.clamp(-87.0, 0.0) * std::f32::consts::LOG2_E;
+            let n = (t + 12_582_912.0) - 12_582_912.0;
+            let y = (t - n) * std::f32::consts::LN_2;
+            let p = 1.0
+                + y * (1.0
+                    + y * (0.5
+                        + y * (1.0 / 6.0
+                            + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
+            p * f32::from_bits((((n as i32) + 127) << 23) as u32)
+        };
+        let mut x = -90.0f32;
+        while x <= 1.0 {
+            assert_eq!(exp_nonpos(x).to_bits(), by_cast(x).to_bits(), "x={x}");
+            x += 0.000_37;
+        }
         assert!(exp_nonpos(-1e9) >= 0.0);
     }
 

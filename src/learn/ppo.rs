@@ -216,12 +216,15 @@ pub struct Workspace {
 }
 
 /// Buffers of the once-per-update critic pass over the whole rollout (kept:
-/// fresh allocations of this size cost page faults every update).
+/// fresh allocations of this size cost page faults every update). One cache per
+/// batch (the rollout, the states after it, the episodes' final states), so that
+/// each keeps its size from update to update instead of being shrunk by the
+/// small batches and zero-filled back to the rollout's size by the next update.
 #[derive(Clone, Debug, Default)]
 struct TargetScratch {
     finals: Vec<f32>,
-    mlp: MlpCache,
-    iqn: IqnCache,
+    mlp: [MlpCache; 3],
+    iqn: [IqnCache; 3],
     taus: Vec<f32>,
 }
 
@@ -341,12 +344,13 @@ fn targets(
     finals.extend(r.final_obs.iter().flat_map(|(_, o)| o.iter().copied()));
     match &ac.critic {
         Critic::Scalar(c) => {
-            let mut v = |o: &[f32]| {
-                c.forward(o, o.len() / r.obs_dim, mlp);
-                mlp.output().to_vec()
+            let v = |o: &[f32], cache: &mut MlpCache| {
+                c.forward(o, o.len() / r.obs_dim, cache);
+                cache.output().to_vec()
             };
-            let values = v(&r.obs);
-            let (last, fin) = (v(&r.last_obs), v(finals));
+            let [m_rollout, m_last, m_finals] = mlp;
+            let values = v(&r.obs, m_rollout);
+            let (last, fin) = (v(&r.last_obs, m_last), v(finals, m_finals));
             let next = next_values(r, 1, &values, &last, &fin);
             let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
             let returns = adv.iter().zip(&values).map(|(a, v)| a + v).collect();
@@ -361,8 +365,8 @@ fn targets(
             let nt = ccfg.num_target_taus;
             taus.clear();
             taus.extend(ac.value_taus.iter().copied().chain(midpoint_taus(nt)));
-            let mut split = |o: &[f32]| {
-                let z = c.forward(o, o.len() / r.obs_dim, taus, iqn);
+            let split = |o: &[f32], cache: &mut IqnCache| {
+                let z = c.forward(o, o.len() / r.obs_dim, taus, cache);
                 let mut v = Vec::with_capacity(z.len() / (k + nt));
                 let mut q = Vec::with_capacity(z.len() / (k + nt) * nt);
                 for row in z.chunks_exact(k + nt) {
@@ -371,9 +375,10 @@ fn targets(
                 }
                 (v, q)
             };
-            let (values, z) = split(&r.obs);
-            let (last_v, last_z) = split(&r.last_obs);
-            let (fin_v, fin_z) = split(finals);
+            let [i_rollout, i_last, i_finals] = iqn;
+            let (values, z) = split(&r.obs, i_rollout);
+            let (last_v, last_z) = split(&r.last_obs, i_last);
+            let (fin_v, fin_z) = split(finals, i_finals);
             let next = next_values(r, 1, &values, &last_v, &fin_v);
             let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
             let next_z = next_values(r, nt, &z, &last_z, &fin_z);
