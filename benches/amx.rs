@@ -7,6 +7,10 @@
 //!
 //! `cargo bench --bench amx` (prints "no AMX" and exits on CPUs without it).
 
+/// The allocator the `rall` binary runs with (large buffers on huge pages).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 use std::time::Instant;
 
 use rall::learn::{amx, mat};

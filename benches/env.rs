@@ -2,6 +2,10 @@
 //! same PD law, same robots), flat then rough, 1 and 2 threads, in one run.
 //! Targets: env/raw >= 0.90; 2 threads >= 1.8x one. Prints a summary table.
 
+/// The allocator the `rall` binary runs with (large buffers on huge pages).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 use criterion::{criterion_group, criterion_main, Criterion};
 use rall::env::bench::bench_env;
 use rall::env::terrain::TerrainKind;

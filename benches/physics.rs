@@ -4,6 +4,10 @@
 //! Target ratio >= 0.97. `cargo bench --bench physics`; the summary line
 //! prints both rates and their ratio from an interleaved side-by-side run.
 
+/// The allocator the `rall` binary runs with (large buffers on huge pages).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 use std::hint::black_box;
 use std::time::Instant;
 

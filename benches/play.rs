@@ -17,6 +17,10 @@
 //!
 //! `cargo bench --bench play` (the side-by-side part alone: `cargo bench --bench play -- none`)
 
+/// The allocator the `rall` binary runs with (large buffers on huge pages).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 use std::hint::black_box;
 use std::path::Path;
 use std::time::{Duration, Instant};

@@ -7,6 +7,10 @@
 //! AVX2) against new (gemm 0.19, AVX-512 at run time) kernels on 1 and 2 threads,
 //! then criterion's own measurement of each.
 
+/// The allocator the `rall` binary runs with (large buffers on huge pages).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rall::learn::mat::{self, gemm, Kernels};
 use rall::learn::{CriticKind, Learner, LearnerConfig, Rollout};

@@ -5,9 +5,15 @@
 //! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //!
-//! `unsafe` is refused everywhere but in `sim` and the one audited GEMM
-//! wrapper (`learn::mat::gemm`): each carries an explicit allow.
+//! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
+//! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
+//! ([`memory`]): each carries an explicit allow.
 #![deny(unsafe_code)]
+
+/// The allocator the `rall` binary and the benchmarks install
+/// (`#[global_allocator]`): large buffers on transparent huge pages.
+#[allow(unsafe_code)]
+pub mod memory;
 
 #[cfg(feature = "sim")]
 pub mod env;

@@ -2,6 +2,10 @@
 
 use clap::Parser;
 
+/// Large buffers on transparent huge pages (see `rall::memory`).
+#[global_allocator]
+static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
+
 fn main() -> std::process::ExitCode {
     let cli = rall::cli::Cli::parse();
     match rall::cli::run(cli) {

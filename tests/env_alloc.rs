@@ -1,12 +1,15 @@
 //! Issue 3: stepping a VecEnv does not grow memory (10k steps with resets).
 
-use std::alloc::{GlobalAlloc, Layout, System};
+use std::alloc::{GlobalAlloc, Layout};
+
+use rall::memory::HugePageAlloc;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::Arc;
 
 use rall::env::{build_scene, EnvConfig, VecEnv, ACT_DIM};
 use rand::{Rng, SeedableRng};
 
+/// The binary's allocator, counting.
 struct Counting;
 static LIVE_BYTES: AtomicI64 = AtomicI64::new(0);
 static ALLOCS: AtomicU64 = AtomicU64::new(0);
@@ -15,11 +18,11 @@ unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, l: Layout) -> *mut u8 {
         LIVE_BYTES.fetch_add(l.size() as i64, Ordering::Relaxed);
         ALLOCS.fetch_add(1, Ordering::Relaxed);
-        unsafe { System.alloc(l) }
+        unsafe { HugePageAlloc.alloc(l) }
     }
     unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
         LIVE_BYTES.fetch_sub(l.size() as i64, Ordering::Relaxed);
-        unsafe { System.dealloc(p, l) }
+        unsafe { HugePageAlloc.dealloc(p, l) }
     }
 }
 
