@@ -140,7 +140,10 @@ pub struct Mlp {
 #[derive(Clone, Debug, Default)]
 pub struct MlpCache {
     acts: Vec<Vec<f32>>,
-    scratch: Vec<f32>,
+    /// `d loss / d input` of each layer (`batch x in`): one buffer per layer, so
+    /// each keeps its size from pass to pass (one buffer swapped between layers of
+    /// different widths was zero-filled on every growth).
+    grads: Vec<Vec<f32>>,
     /// The network's input when it reads a subset of the observation row.
     input: Vec<f32>,
     /// Latent module (encoder or adaptation): its input and its own cache.
@@ -210,17 +213,28 @@ impl Mlp {
         dout: &mut Vec<f32>,
         want_dx: bool,
     ) {
-        let MlpCache { acts, scratch, .. } = cache;
+        let Some(last) = self.layers.len().checked_sub(1) else {
+            return;
+        };
+        let MlpCache { acts, grads, .. } = cache;
+        grads.resize_with(self.layers.len(), Vec::new);
         for (l, layer) in self.layers.iter().enumerate().rev() {
+            // d loss / d output of layer l: the caller's for the last layer, else
+            // the input gradient of layer l + 1
+            let (below, above) = grads.split_at_mut(l + 1);
+            let dy = if l == last { &mut *dout } else { &mut above[0] };
             if self.activated(l) {
-                elu_backward_inplace(dout, &acts[l]);
+                elu_backward_inplace(dy, &acts[l]);
             }
             let input = if l == 0 { x } else { &acts[l - 1] };
-            layer.backward_params(g, input, batch, dout);
+            layer.backward_params(g, input, batch, dy);
             if l > 0 || want_dx {
-                layer.backward_input(p, batch, dout, scratch);
-                std::mem::swap(dout, scratch);
+                layer.backward_input(p, batch, dy, &mut below[l]);
             }
+        }
+        if want_dx {
+            dout.clear();
+            dout.extend_from_slice(&grads[0]);
         }
     }
 }
