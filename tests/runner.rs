@@ -283,8 +283,13 @@ fn fall_directions_follow_the_larger_tilt() {
         steps_at_torque_limit: 3,
         steps_since_command_change: 10,
         previous_command: None,
-        friction: Some(0.8),
-        added_base_mass_kg: 1.0,
+        draw: rall::env::EpisodeDraw {
+            friction: Some(0.8),
+            added_base_mass_kg: 1.0,
+            motor_strength: [0.95; 12],
+            kp_factor: 1.05,
+            ..Default::default()
+        },
     };
     assert_eq!(fall(0.1, 0.7).direction(), "nose down");
     assert_eq!(fall(0.1, -0.7).direction(), "nose up");
@@ -293,6 +298,10 @@ fn fall_directions_follow_the_larger_tilt() {
     assert!(fall(0.1, 0.7)
         .csv_row()
         .starts_with("0,10,Tilt,nose down,0.500,"));
+    // the draws close the row, in the header's order
+    assert!(fall(0.1, 0.7)
+        .csv_row()
+        .ends_with(",0.800,1.000,0.950,0.950,1.050,1.000,0.0000,0.0000,0.0000"));
 }
 
 /// A run killed after its checkpoint at iteration 2 but before the next (the

@@ -179,7 +179,8 @@ pub struct TrackingArgs {
     /// Also write how each robot fell (one CSV row per fall: command, attitude,
     /// velocity and foot contacts at its last step, steps with a motor at its torque
     /// limit among the last 25, steps since the command last changed and the command
-    /// before it, randomisation draws) to this file.
+    /// before it, randomisation draws: friction, added mass, weakest and mean motor
+    /// strength, PD gain factors, centre-of-mass offset) to this file.
     #[arg(long, value_name = "FILE")]
     pub falls_csv: Option<PathBuf>,
 }

@@ -8,7 +8,7 @@ use rand::SeedableRng;
 
 use crate::env::config::PushConfig;
 use crate::env::terrain::TerrainKind;
-use crate::env::{build_scene, EnvConfig, EpisodeEnd, VecEnv};
+use crate::env::{build_scene, EnvConfig, EpisodeDraw, EpisodeEnd, VecEnv};
 use crate::learn::Learner;
 
 /// Tracking figures over all evaluated episodes.
@@ -88,8 +88,7 @@ pub struct FallRecord {
     /// The command before the last change (`None`: it never changed).
     pub previous_command: Option<[f64; 3]>,
     /// The episode's randomisation draws.
-    pub friction: Option<f64>,
-    pub added_base_mass_kg: f64,
+    pub draw: EpisodeDraw,
 }
 
 impl FallRecord {
@@ -109,18 +108,25 @@ impl FallRecord {
     }
 
     /// CSV header of [`FallRecord::csv_row`].
-    pub const CSV_HEADER: &'static str = "env,steps,end,direction,cmd_vx_mps,cmd_vy_mps,cmd_yaw_rate_rad_s,roll_rad,pitch_rad,vx_body_mps,vy_body_mps,vz_body_mps,contact_FR,contact_FL,contact_RR,contact_RL,steps_at_torque_limit_of_last_25,steps_since_command_change,prev_cmd_vx_mps,prev_cmd_vy_mps,prev_cmd_yaw_rate_rad_s,friction,added_base_mass_kg";
+    pub const CSV_HEADER: &'static str = "env,steps,end,direction,cmd_vx_mps,cmd_vy_mps,cmd_yaw_rate_rad_s,roll_rad,pitch_rad,vx_body_mps,vy_body_mps,vz_body_mps,contact_FR,contact_FL,contact_RR,contact_RL,steps_at_torque_limit_of_last_25,steps_since_command_change,prev_cmd_vx_mps,prev_cmd_vy_mps,prev_cmd_yaw_rate_rad_s,friction,added_base_mass_kg,motor_strength_min,motor_strength_mean,kp_factor,kd_factor,com_offset_x_m,com_offset_y_m,com_offset_z_m";
 
     pub fn csv_row(&self) -> String {
         let c = self.command;
         let v = self.base_lin_vel_body_mps;
         let f = self.foot_contact.map(|b| b as u8);
+        let d = &self.draw;
+        let strength_min = d
+            .motor_strength
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        let strength_mean = d.motor_strength.iter().sum::<f64>() / d.motor_strength.len() as f64;
         let prev = match self.previous_command {
             Some(p) => format!("{:.3},{:.3},{:.3}", p[0], p[1], p[2]),
             None => ",,".to_string(),
         };
         format!(
-            "{},{},{:?},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3}",
+            "{},{},{:?},{},{:.3},{:.3},{:.3},{:.4},{:.4},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{:.4},{:.4},{:.4}",
             self.env_index,
             self.steps,
             self.end,
@@ -140,8 +146,15 @@ impl FallRecord {
             self.steps_at_torque_limit,
             self.steps_since_command_change,
             prev,
-            self.friction.map_or(String::new(), |x| format!("{x:.3}")),
-            self.added_base_mass_kg
+            d.friction.map_or(String::new(), |x| format!("{x:.3}")),
+            d.added_base_mass_kg,
+            strength_min,
+            strength_mean,
+            d.kp_factor,
+            d.kd_factor,
+            d.com_offset_m[0],
+            d.com_offset_m[1],
+            d.com_offset_m[2]
         )
     }
 }
@@ -228,8 +241,7 @@ pub fn evaluate_tracking_with_falls(
                 steps_at_torque_limit: 0,
                 steps_since_command_change: 0,
                 previous_command: previous[i],
-                friction: env.draw.friction,
-                added_base_mass_kg: env.draw.added_base_mass_kg,
+                draw: env.draw,
             });
         }
         if alive.iter().all(|a| !a) {
