@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::spec::{ExperimentSpec, RunSpec};
-use super::stats::{bootstrap, mean, quantile, Estimate};
+use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
 use super::RunState;
 use crate::eval::race::IqrBin;
 use crate::eval::report::csv_field;
@@ -111,10 +111,8 @@ impl ExperimentResults {
         eval_wall_s: f64,
     ) -> ExperimentResults {
         let b = &spec.bootstrap;
-        let mut cell_seed = b.seed;
-        let mut ci = |units: &[f64], stat: &dyn Fn(&[f64]) -> f64| {
-            cell_seed += 1;
-            bootstrap(units, stat, b.resamples, b.level, cell_seed)
+        let ci = |cell: String, units: &[f64], stat: &dyn Fn(&[f64]) -> f64| {
+            bootstrap(units, stat, b.resamples, b.level, cell_seed(b.seed, &cell))
         };
         let run_rows = runs
             .iter()
@@ -162,7 +160,17 @@ impl ExperimentResults {
                     load: c.load.name().to_string(),
                     terrain: c.terrain.clone(),
                     push: c.push,
-                    ttf: ci(&steps, &|v| mean(v) / len),
+                    ttf: ci(
+                        format!(
+                            "ttf/{}/{}/{}/{}",
+                            c.policy,
+                            c.load.name(),
+                            c.terrain,
+                            c.push
+                        ),
+                        &steps,
+                        &|v| mean(v) / len,
+                    ),
                     robots: c.robots,
                     paper,
                 }
@@ -180,7 +188,7 @@ impl ExperimentResults {
                 PlatformRow {
                     method: c.policy.clone(),
                     height_m: c.height_m,
-                    success_pct: ci(&ok, &mean),
+                    success_pct: ci(format!("platform/{}/{}", c.policy, c.height_m), &ok, &mean),
                     robots: c.robots,
                     paper: spec
                         .paper
@@ -200,15 +208,15 @@ impl ExperimentResults {
             let q = |q: f64| {
                 move |a: &[Vec<f64>]| quantile(&a.iter().flatten().copied().collect::<Vec<_>>(), q)
             };
-            cell_seed += 1;
-            let est = |stat: &dyn Fn(&[Vec<f64>]) -> f64, seed: u64| {
+            let est = |stat: &dyn Fn(&[Vec<f64>]) -> f64, quantile: &str| {
+                let seed = cell_seed(b.seed, &format!("race/{}/{quantile}", r.name));
                 bootstrap(&agents, stat, b.resamples, b.level, seed)
             };
             race_rows.push(RaceRow {
                 method: r.name.clone(),
-                q25: est(&q(0.25), cell_seed),
-                q50: est(&q(0.5), cell_seed + 1000),
-                q75: est(&q(0.75), cell_seed + 2000),
+                q25: est(&q(0.25), "q25"),
+                q50: est(&q(0.5), "q50"),
+                q75: est(&q(0.75), "q75"),
                 mean_return: r.mean_return,
                 fall_fraction: r.fall_fraction,
                 episodes: r.episodes,
