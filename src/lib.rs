@@ -4,6 +4,7 @@
 //! - [`sim`]: the only module with `unsafe`; safe types over MuJoCo 2.2.
 //! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
+//! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
 //!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
 //! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
@@ -29,6 +30,7 @@ pub mod robot;
 #[allow(unsafe_code)]
 pub mod sim;
 
+pub mod hash;
 pub mod learn;
 
 #[cfg(feature = "sim")]

@@ -6,6 +6,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use crate::hash::{fnv1a64_from, FNV1A64_OFFSET};
+
 /// A point estimate with its confidence interval.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Estimate {
@@ -31,12 +33,7 @@ impl Estimate {
 /// across Rust versions), so a cell's interval depends on its own data only, not on
 /// which other methods or cells the experiment evaluates.
 pub fn cell_seed(seed: u64, cell: &str) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325 ^ seed;
-    for b in cell.bytes() {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    h
+    fnv1a64_from(FNV1A64_OFFSET ^ seed, cell.bytes())
 }
 
 /// `statistic` of `units` with a percentile bootstrap interval at `level`.

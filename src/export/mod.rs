@@ -418,12 +418,7 @@ impl PolicyNet {
 
 /// FNV-1a (64 bit) of `text`, as 16 hex digits.
 pub fn fnv1a64_hex(text: &str) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in text.bytes() {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0000_0100_0000_01b3);
-    }
-    format!("{h:016x}")
+    format!("{:016x}", crate::hash::fnv1a64(text.bytes()))
 }
 
 /// The sidecar path beside an ONNX path: `OUT.onnx` -> `OUT.json`.

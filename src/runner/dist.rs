@@ -143,14 +143,7 @@ pub fn rank_seed(seed: u64, rank: usize) -> u64 {
 
 /// The FNV-1a hash of `values`' bits: ranks compare their parameters by it.
 pub fn hash_f32(values: impl IntoIterator<Item = f32>) -> u64 {
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    for v in values {
-        for b in v.to_bits().to_le_bytes() {
-            h ^= b as u64;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        }
-    }
-    h
+    crate::hash::fnv1a64(values.into_iter().flat_map(|v| v.to_bits().to_le_bytes()))
 }
 
 /// The ranks whose hash differs from rank 0's.
