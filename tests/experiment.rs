@@ -54,24 +54,31 @@ config = "{rall}"
 seed = 1
 iterations = 2
 
+[[run]]
+name = "rall"
+label = "RALL seed 2"
+config = "{rall}"
+seed = 2
+iterations = 2
+
 [tracking]
 episodes = 4
 seed = 7
 
 [ttf]
-methods = ["Baseline", "RALL"]
+methods = ["Baseline", "RALL", "RALL seed 2"]
 seeds = 2
 repeats = 2
 loads = ["ball"]
 
 [platform]
-methods = ["Baseline", "RALL"]
+methods = ["Baseline", "RALL", "RALL seed 2"]
 heights_m = [0.40]
 seeds = 1
 repeats = 2
 
 [race]
-methods = ["Baseline"]
+methods = ["Baseline", "RALL seed 2"]
 agents = 2
 episodes = 1
 
@@ -141,6 +148,9 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "ttf.csv",
         "platform.csv",
         "race.csv",
+        "ttf_by_method.csv",
+        "platform_by_method.csv",
+        "race_by_method.csv",
         "results.json",
     ] {
         let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
@@ -157,7 +167,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     );
     assert!(md.contains("Meta"), "{md}");
     let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
-    assert_eq!(ttf.lines().count(), 1 + 2 * 4, "{ttf}");
+    assert_eq!(ttf.lines().count(), 1 + 3 * 4, "{ttf}");
     for line in ttf.lines().skip(1) {
         let v: Vec<f64> = line
             .split(',')
@@ -170,6 +180,32 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
             "interval must hold the estimate: {line}"
         );
     }
+    // one row per method: RALL's two seeds pooled (equal weights, each seed's value
+    // kept), Baseline's one seed exactly its run's row
+    let by_method =
+        std::fs::read_to_string(dir.path().join("results-a/ttf_by_method.csv")).unwrap();
+    assert_eq!(by_method.lines().count(), 1 + 2 * 4, "{by_method}");
+    let fields = |l: &str| l.split(',').map(str::to_string).collect::<Vec<_>>();
+    for method in by_method.lines().skip(1) {
+        let m = fields(method);
+        if m[0] == "Baseline" {
+            assert_eq!(m[1], "Baseline");
+            let run = ttf
+                .lines()
+                .map(fields)
+                .find(|r| r[..4] == [&m[..1], &m[2..5]].concat())
+                .unwrap();
+            assert_eq!(run[4..7], m[5..8], "{run:?} / {method}");
+        } else {
+            assert_eq!((m[0].as_str(), m[1].as_str()), ("RALL", "RALL;RALL seed 2"));
+            let seeds: Vec<f64> = m[8].split(';').map(|x| x.parse().unwrap()).collect();
+            let v: f64 = m[5].parse().unwrap();
+            assert_eq!(seeds.len(), 2, "{method}");
+            assert!((v - (seeds[0] + seeds[1]) / 2.0).abs() < 1e-3, "{method}");
+            assert_eq!(m[9], "8", "robots of both seeds: {method}");
+        }
+    }
+    assert!(md.contains("RALL (2 seeds)"), "{md}");
     for fig in ["ttf.svg", "platform.svg", "race.svg", "race_iqr.svg"] {
         let svg = std::fs::read_to_string(dir.path().join("results-a/figures").join(fig)).unwrap();
         assert!(svg.starts_with("<svg") && svg.len() > 500, "{fig}");
@@ -244,7 +280,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
 fn an_experiment_file_naming_an_unknown_method_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let text = spec_text(dir.path(), "r").replace(
-        "methods = [\"Baseline\"]\nagents",
+        "methods = [\"Baseline\", \"RALL seed 2\"]\nagents",
         "methods = [\"Baselin\"]\nagents",
     );
     let file = dir.path().join("bad.toml");
@@ -279,5 +315,5 @@ fn unfinished_runs_are_refused_unless_allowed_and_missing_ones_are_left_out() {
     };
     run_experiment(&spec, &allowed, stop()).unwrap();
     let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
-    assert_eq!(md.matches("(not started)").count(), 3, "{md}");
+    assert_eq!(md.matches("(not started)").count(), 4, "{md}");
 }

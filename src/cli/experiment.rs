@@ -37,6 +37,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         return ship_all(&spec, &args.file);
     }
     if args.status {
+        let width = spec.runs.iter().map(|r| r.label.len()).max().unwrap_or(0);
         for r in &spec.runs {
             let s = run_state(&spec, r)?;
             let at = s.progress.as_ref().map_or(0, |p| p.iteration);
@@ -48,7 +49,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
                 "not started"
             };
             println!(
-                "{:<16} {:<12} {:>6} / {:<6} {}",
+                "{:<width$} {:<12} {:>6} / {:<6} {}",
                 r.label,
                 state,
                 at,

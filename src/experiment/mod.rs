@@ -5,6 +5,7 @@
 //! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
 
 pub mod plots;
+pub mod pooled;
 pub mod results;
 pub mod spec;
 pub mod stats;

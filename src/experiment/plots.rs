@@ -22,7 +22,9 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing a figure: {e}")
 }
 
-/// One panel of grouped bars: `groups` on x, one bar per series, whiskers at [lo, hi].
+/// One panel of grouped bars: `groups` on x, one bar per series, whiskers at [lo, hi],
+/// and a dot at each of `seeds(group, series)` (each training seed's own value).
+#[allow(clippy::too_many_arguments)]
 fn bars<DB: DrawingBackend>(
     area: &DrawingArea<DB, plotters::coord::Shift>,
     title: &str,
@@ -30,6 +32,7 @@ fn bars<DB: DrawingBackend>(
     groups: &[String],
     series: &[String],
     value: &dyn Fn(usize, usize) -> Option<Estimate>,
+    seeds: &dyn Fn(usize, usize) -> Vec<f64>,
     y_max: f64,
 ) -> Result<()>
 where
@@ -65,6 +68,7 @@ where
         let color = PALETTE[si % PALETTE.len()];
         let mut rects = Vec::new();
         let mut whiskers = Vec::new();
+        let mut dots = Vec::new();
         for gi in 0..groups.len() {
             if let Some(e) = value(gi, si) {
                 let x0 = gi as f64 + 0.1 + si as f64 * width;
@@ -77,6 +81,13 @@ where
                     vec![(xc, e.lo), (xc, e.hi)],
                     BLACK.stroke_width(1),
                 ));
+                let per_seed = seeds(gi, si);
+                if per_seed.len() > 1 {
+                    for (k, v) in per_seed.iter().enumerate() {
+                        let dx = width * 0.9 * (k as f64 + 1.0) / (per_seed.len() as f64 + 1.0);
+                        dots.push(Circle::new((x0 + dx, *v), 3, BLACK.filled()));
+                    }
+                }
             }
         }
         chart
@@ -85,6 +96,7 @@ where
             .label(name.clone())
             .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
         chart.draw_series(whiskers).map_err(err)?;
+        chart.draw_series(dots).map_err(err)?;
     }
     chart
         .configure_series_labels()
@@ -97,8 +109,9 @@ where
 }
 
 fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
-    let loads: Vec<String> = unique(r.ttf.iter().map(|c| c.load.clone()));
-    let methods: Vec<String> = unique(r.ttf.iter().map(|c| c.method.clone()));
+    let rows = &r.methods.ttf;
+    let loads: Vec<String> = unique(rows.iter().map(|c| c.load.clone()));
+    let methods: Vec<String> = unique(rows.iter().map(|c| c.method.display()));
     let cols = [
         ("flat", false),
         ("flat", true),
@@ -113,16 +126,13 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     root.fill(&WHITE).map_err(err)?;
     let panels = root.split_evenly((1, loads.len().max(1)));
     for (load, area) in loads.iter().zip(panels.iter()) {
-        let value = |g: usize, s: usize| {
-            r.ttf
-                .iter()
-                .find(|c| {
-                    &c.load == load
-                        && c.method == methods[s]
-                        && c.terrain == cols[g].0
-                        && c.push == cols[g].1
-                })
-                .map(|c| c.ttf)
+        let cell = |g: usize, s: usize| {
+            rows.iter().find(|c| {
+                &c.load == load
+                    && c.method.display() == methods[s]
+                    && c.terrain == cols[g].0
+                    && c.push == cols[g].1
+            })
         };
         bars(
             area,
@@ -130,7 +140,8 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
             "time to fall",
             &groups,
             &methods,
-            &value,
+            &|g, s| cell(g, s).map(|c| c.ttf),
+            &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
             1.05,
         )?;
     }
@@ -138,15 +149,15 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
 }
 
 fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
-    let heights: Vec<String> = unique(r.platform.iter().map(|c| format!("{:.2} m", c.height_m)));
-    let methods: Vec<String> = unique(r.platform.iter().map(|c| c.method.clone()));
+    let rows = &r.methods.platform;
+    let heights: Vec<String> = unique(rows.iter().map(|c| format!("{:.2} m", c.height_m)));
+    let methods: Vec<String> = unique(rows.iter().map(|c| c.method.display()));
     let root = SVGBackend::new(path, (640, 400)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    let value = |g: usize, s: usize| {
-        r.platform
-            .iter()
-            .find(|c| format!("{:.2} m", c.height_m) == heights[g] && c.method == methods[s])
-            .map(|c| c.success_pct)
+    let cell = |g: usize, s: usize| {
+        rows.iter().find(|c| {
+            format!("{:.2} m", c.height_m) == heights[g] && c.method.display() == methods[s]
+        })
     };
     bars(
         &root,
@@ -154,7 +165,8 @@ fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
         "success %",
         &heights,
         &methods,
-        &value,
+        &|g, s| cell(g, s).map(|c| c.success_pct),
+        &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
         105.0,
     )?;
     root.present().map_err(err)
@@ -162,20 +174,30 @@ fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
 
 fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     let groups = vec!["q0.25".to_string(), "q0.5".into(), "q0.75".into()];
-    let methods: Vec<String> = r.race.iter().map(|c| c.method.clone()).collect();
-    let all: Vec<Estimate> = r.race.iter().flat_map(|c| [c.q25, c.q50, c.q75]).collect();
-    let y_max = all.iter().map(|e| e.hi).fold(1e-6, f64::max) * 1.15;
+    let rows = &r.methods.race;
+    let methods: Vec<String> = rows.iter().map(|c| c.method.display()).collect();
+    let highest = rows
+        .iter()
+        .flat_map(|c| {
+            [c.q25.hi, c.q50.hi, c.q75.hi]
+                .into_iter()
+                .chain(c.per_seed.iter().flatten().copied())
+        })
+        .fold(1e-6, f64::max);
     let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    let value = |g: usize, s: usize| r.race.get(s).map(|c| [c.q25, c.q50, c.q75][g]);
     bars(
         &root,
         "Race track returns",
         "episode return",
         &groups,
         &methods,
-        &value,
-        y_max,
+        &|g, s| rows.get(s).map(|c| [c.q25, c.q50, c.q75][g]),
+        &|g, s| {
+            rows.get(s)
+                .map_or(Vec::new(), |c| c.per_seed.iter().map(|q| q[g]).collect())
+        },
+        highest * 1.15,
     )?;
     root.present().map_err(err)
 }

@@ -7,6 +7,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use serde::Serialize;
 
+use super::pooled::{show_with_seeds, MethodTables};
 use super::spec::{ExperimentSpec, RunSpec};
 use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
 use super::RunState;
@@ -86,6 +87,8 @@ pub struct ExperimentResults {
     pub platform: Vec<PlatformRow>,
     pub race: Vec<RaceRow>,
     pub meta: Option<MetaSummary>,
+    /// The three tables again, one row per method over its seeds.
+    pub methods: MethodTables,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
     pub evaluation_wall_clock_min: f64,
@@ -114,6 +117,7 @@ impl ExperimentResults {
         let ci = |cell: String, units: &[f64], stat: &dyn Fn(&[f64]) -> f64| {
             bootstrap(units, stat, b.resamples, b.level, cell_seed(b.seed, &cell))
         };
+        let methods = MethodTables::new(spec, ttf.as_ref(), platform.as_ref(), race.as_ref());
         let run_rows = runs
             .iter()
             .map(|(r, s)| {
@@ -254,6 +258,7 @@ impl ExperimentResults {
             platform: platform_rows,
             race: race_rows,
             meta,
+            methods,
             evaluation_wall_clock_min: eval_wall_s / 60.0,
         }
     }
@@ -310,6 +315,12 @@ impl ExperimentResults {
         let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.\n",
             self.runs.first().map_or(0, |r| r.tracking_episodes));
 
+        self.methods_markdown(&mut s);
+        let _ = writeln!(s, "## Per training run\n");
+        let _ = writeln!(
+            s,
+            "Every run on its own (the tables above pool these by method).\n"
+        );
         let _ = writeln!(s, "## Table I: Time to Fall\n");
         let _ = writeln!(
             s,
@@ -392,6 +403,100 @@ impl ExperimentResults {
         s
     }
 
+    /// The paper's TTF for `method` at `load` and column `k`.
+    fn paper_ttf(&self, method: &str, load: &str, k: usize) -> Option<f64> {
+        let (t, p) = TTF_COLUMNS[k];
+        self.ttf
+            .iter()
+            .find(|r| r.method == method && r.load == load && r.terrain == t && r.push == p)
+            .and_then(|r| r.paper)
+    }
+
+    /// The three tables with one row per method (seeds pooled, each seed in braces).
+    fn methods_markdown(&self, s: &mut String) {
+        let m = &self.methods;
+        if m.ttf.is_empty() && m.platform.is_empty() && m.race.is_empty() {
+            return;
+        }
+        let _ = writeln!(s, "## Each method over its training seeds\n");
+        let _ = writeln!(s, "Runs that differ only in their training seed are one method here. Its number weights every seed equally (the mean of the seeds' means; the race: quantiles of the seeds' returns pooled) with a 95% bootstrap that resamples robots within each seed; each seed's own value follows in braces, because with two seeds the spread between them is the honest measure of what another seed would do, and no interval over robots covers it.\n");
+        let _ = writeln!(s, "### Table I: Time to Fall\n");
+        let _ = writeln!(
+            s,
+            "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
+        );
+        let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
+        let loads = Self::methods_of(m.ttf.iter().map(|r| &r.load));
+        let labels = Self::methods_of(m.ttf.iter().map(|r| &r.method.label));
+        for l in &loads {
+            for label in &labels {
+                let Some(first) = m
+                    .ttf
+                    .iter()
+                    .find(|r| &r.load == l && &r.method.label == label)
+                else {
+                    continue;
+                };
+                let mut line = format!("| {l} | {} |", first.method.display());
+                for (k, (t, p)) in TTF_COLUMNS.into_iter().enumerate() {
+                    let cell = m.ttf.iter().find(|r| {
+                        &r.load == l && &r.method.label == label && r.terrain == t && r.push == p
+                    });
+                    let text = cell.map_or("-".into(), |c| {
+                        let paper = self
+                            .paper_ttf(label, l, k)
+                            .map_or(String::new(), |p| format!(" (paper {p:.3})"));
+                        format!("{}{paper}", show_with_seeds(&c.ttf, &c.per_seed, 3))
+                    });
+                    let _ = write!(line, " {text} |");
+                }
+                let _ = writeln!(s, "{line}");
+            }
+        }
+        let _ = writeln!(s, "\n### Table II: walking off a platform (success %)\n");
+        let _ = writeln!(s, "| Height | Method | ours | paper | robots |");
+        let _ = writeln!(s, "|---:|---|---:|---:|---:|");
+        for r in &m.platform {
+            let paper = self
+                .platform
+                .iter()
+                .find(|p| p.method == r.method.label && p.height_m == r.height_m)
+                .and_then(|p| p.paper);
+            let _ = writeln!(
+                s,
+                "| {:.2} m | {} | {} | {} | {} |",
+                r.height_m,
+                r.method.display(),
+                show_with_seeds(&r.success_pct, &r.per_seed, 1),
+                paper.map_or("-".into(), |p| format!("{p:.1}")),
+                r.robots
+            );
+        }
+        let _ = writeln!(s, "\n### Race track: return quantiles\n");
+        let _ = writeln!(
+            s,
+            "| Method | q0.25 (worst case) | q0.5 | q0.75 (best case) | falls | episodes |"
+        );
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+        for r in &m.race {
+            let q = |k: usize, e: &Estimate| {
+                let seeds: Vec<f64> = r.per_seed.iter().map(|q| q[k]).collect();
+                show_with_seeds(e, &seeds, 2)
+            };
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {:.1}% | {} |",
+                r.method.display(),
+                q(0, &r.q25),
+                q(1, &r.q50),
+                q(2, &r.q75),
+                100.0 * r.fall_fraction,
+                r.episodes
+            );
+        }
+        let _ = writeln!(s);
+    }
+
     fn csv_files(&self) -> Vec<(&'static str, String)> {
         let est =
             |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
@@ -455,8 +560,67 @@ impl ExperimentResults {
                 r.episodes
             );
         }
+        let seeds = |m: &super::pooled::Method| csv_field(&m.seeds.join(";"));
+        let per_seed = |v: &[f64], d: usize| {
+            v.iter()
+                .map(|x| format!("{x:.d$}", d = d))
+                .collect::<Vec<_>>()
+                .join(";")
+        };
+        let mut ttf_m =
+            String::from("method,seeds,load,terrain,push,ttf,ttf_lo,ttf_hi,per_seed,robots\n");
+        for r in &self.methods.ttf {
+            let _ = writeln!(
+                ttf_m,
+                "{},{},{},{},{},{},{},{}",
+                csv_field(&r.method.label),
+                seeds(&r.method),
+                r.load,
+                r.terrain,
+                r.push,
+                est(&r.ttf, 4),
+                per_seed(&r.per_seed, 4),
+                r.robots
+            );
+        }
+        let mut platform_m = String::from(
+            "method,seeds,height_m,success_pct,success_lo,success_hi,per_seed,robots\n",
+        );
+        for r in &self.methods.platform {
+            let _ = writeln!(
+                platform_m,
+                "{},{},{},{},{},{}",
+                csv_field(&r.method.label),
+                seeds(&r.method),
+                r.height_m,
+                est(&r.success_pct, 2),
+                per_seed(&r.per_seed, 2),
+                r.robots
+            );
+        }
+        let mut race_m = String::from("method,seeds,q25,q25_lo,q25_hi,q50,q50_lo,q50_hi,q75,q75_lo,q75_hi,per_seed_q25,per_seed_q50,per_seed_q75,fall_fraction,episodes\n");
+        for r in &self.methods.race {
+            let col = |k: usize| per_seed(&r.per_seed.iter().map(|q| q[k]).collect::<Vec<_>>(), 4);
+            let _ = writeln!(
+                race_m,
+                "{},{},{},{},{},{},{},{},{:.4},{}",
+                csv_field(&r.method.label),
+                seeds(&r.method),
+                est(&r.q25, 4),
+                est(&r.q50, 4),
+                est(&r.q75, 4),
+                col(0),
+                col(1),
+                col(2),
+                r.fall_fraction,
+                r.episodes
+            );
+        }
         vec![
             ("runs.csv", runs),
+            ("ttf_by_method.csv", ttf_m),
+            ("platform_by_method.csv", platform_m),
+            ("race_by_method.csv", race_m),
             ("ttf.csv", ttf),
             ("platform.csv", platform),
             ("race.csv", race),
@@ -489,9 +653,9 @@ impl ExperimentResults {
 /// The figures [`super::plots::write_all`] draws.
 pub fn plots_list() -> [(&'static str, &'static str); 4] {
     [
-        ("ttf.svg", "TTF per cell and method, with intervals (table I)"),
-        ("platform.svg", "platform success per height and method (table II)"),
-        ("race.svg", "race return quantiles per method and the meta controller"),
+        ("ttf.svg", "TTF per cell and method, seeds pooled, with intervals and a dot per seed (table I)"),
+        ("platform.svg", "platform success per height and method, seeds pooled, a dot per seed (table II)"),
+        ("race.svg", "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller"),
         ("race_iqr.svg", "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"),
     ]
 }

@@ -71,6 +71,46 @@ pub fn bootstrap<T: Clone>(
     }
 }
 
+/// `statistic` of `strata` (a method's seeds, each a list of robots) with a percentile
+/// bootstrap that resamples units within each stratum: the seeds keep their sizes, so
+/// a statistic weighting seeds equally stays so. One stratum draws exactly what
+/// [`bootstrap`] draws.
+pub fn bootstrap_strata<T: Clone>(
+    strata: &[Vec<T>],
+    statistic: impl Fn(&[Vec<T>]) -> f64,
+    resamples: usize,
+    level: f64,
+    seed: u64,
+) -> Estimate {
+    let value = statistic(strata);
+    if strata.iter().map(Vec::len).sum::<usize>() < 2 {
+        return Estimate {
+            value,
+            lo: value,
+            hi: value,
+        };
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut stats = Vec::with_capacity(resamples);
+    let mut sample: Vec<Vec<T>> = strata.iter().map(|s| Vec::with_capacity(s.len())).collect();
+    for _ in 0..resamples {
+        for (out, units) in sample.iter_mut().zip(strata) {
+            out.clear();
+            for _ in 0..units.len() {
+                out.push(units[rng.gen_range(0..units.len())].clone());
+            }
+        }
+        stats.push(statistic(&sample));
+    }
+    stats.sort_by(f64::total_cmp);
+    let alpha = (1.0 - level) / 2.0;
+    Estimate {
+        value,
+        lo: percentile(&stats, alpha),
+        hi: percentile(&stats, 1.0 - alpha),
+    }
+}
+
 /// Linear interpolation between order statistics of sorted `v`.
 pub fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
@@ -125,6 +165,20 @@ mod tests {
         assert_ne!(a, cell_seed(0, "ttf/DR/ball/flat/false"));
         // fixed value: committed results depend on it staying the same
         assert_eq!(cell_seed(0, ""), 0xcbf2_9ce4_8422_2325);
+    }
+
+    #[test]
+    fn one_stratum_is_the_plain_bootstrap_and_strata_keep_their_weights() {
+        let units: Vec<f64> = (0..30).map(|i| ((i * 7) % 11) as f64).collect();
+        let plain = bootstrap(&units, mean, 400, 0.95, 9);
+        let one = bootstrap_strata(&[units.clone()], |s| mean(&s[0]), 400, 0.95, 9);
+        assert_eq!(plain, one);
+        // two seeds far apart: equal weight per seed whatever their sizes, and the
+        // within-seed resampling never mixes them (every resample's mean stays ~5.5)
+        let a = vec![1.0; 10];
+        let b = vec![10.0; 40];
+        let e = bootstrap_strata(&[a, b], |s| (mean(&s[0]) + mean(&s[1])) / 2.0, 200, 0.95, 1);
+        assert_eq!((e.lo, e.value, e.hi), (5.5, 5.5, 5.5));
     }
 
     #[test]

@@ -1,0 +1,270 @@
+//! Each method over its training seeds. Runs that share a `name` in the experiment
+//! file (`rall-eta0.5` seeds 1 and 2) are one method; its number weights every seed
+//! equally (the mean of the seeds' means; the race: quantiles of the seeds' returns
+//! pooled), with a bootstrap that resamples robots within each seed. The seeds' own
+//! values travel with it, so the spread between seeds stays visible: with two seeds
+//! an interval over seeds would mean little, and the one over robots does not cover
+//! what another seed would do.
+
+use serde::Serialize;
+
+use super::spec::ExperimentSpec;
+use super::stats::{bootstrap_strata, cell_seed, mean, quantile, Estimate};
+use crate::eval::{PlatformReport, RaceReport, TtfReport};
+
+/// One method: the labels of its seeds' runs, in the experiment file's order.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Method {
+    /// The first seed's label (the paper's method name; its numbers are looked up by it).
+    pub label: String,
+    pub seeds: Vec<String>,
+}
+
+impl Method {
+    /// `RALL (2 seeds)`, or the label alone for one seed.
+    pub fn display(&self) -> String {
+        match self.seeds.len() {
+            1 => self.label.clone(),
+            n => format!("{} ({n} seeds)", self.label),
+        }
+    }
+}
+
+/// Groups `labels` (one table's evaluated runs, in table order) into methods: labels of
+/// runs with the same `name` go together; a label that is no run (the meta controller)
+/// is a method of its own.
+pub fn methods_of(spec: &ExperimentSpec, labels: &[String]) -> Vec<Method> {
+    let key = |label: &str| {
+        spec.runs
+            .iter()
+            .find(|r| r.label == label)
+            .map_or(format!("label:{label}"), |r| format!("run:{}", r.name))
+    };
+    let mut out: Vec<(String, Method)> = Vec::new();
+    for l in labels {
+        let k = key(l);
+        match out.iter_mut().find(|(kk, _)| *kk == k) {
+            Some((_, m)) => {
+                if !m.seeds.contains(l) {
+                    m.seeds.push(l.clone())
+                }
+            }
+            None => out.push((
+                k,
+                Method {
+                    label: l.clone(),
+                    seeds: vec![l.clone()],
+                },
+            )),
+        }
+    }
+    out.into_iter().map(|(_, m)| m).collect()
+}
+
+/// The bootstrap seed of a method's cell: a one-seed method uses its run's cell name, so
+/// its interval is the per-run table's to the digit.
+fn pooled_seed(base: u64, m: &Method, cell: &str) -> u64 {
+    if m.seeds.len() == 1 {
+        cell_seed(base, &cell.replacen("{}", &m.label, 1))
+    } else {
+        cell_seed(
+            base,
+            &format!("seeds:{}", cell.replacen("{}", &m.seeds.join("+"), 1)),
+        )
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodTtfRow {
+    pub method: Method,
+    pub load: String,
+    pub terrain: String,
+    pub push: bool,
+    pub ttf: Estimate,
+    /// Each seed's TTF, in `method.seeds` order.
+    pub per_seed: Vec<f64>,
+    pub robots: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodPlatformRow {
+    pub method: Method,
+    pub height_m: f64,
+    pub success_pct: Estimate,
+    pub per_seed: Vec<f64>,
+    pub robots: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodRaceRow {
+    pub method: Method,
+    pub q25: Estimate,
+    pub q50: Estimate,
+    pub q75: Estimate,
+    /// Each seed's (q0.25, q0.5, q0.75).
+    pub per_seed: Vec<[f64; 3]>,
+    pub fall_fraction: f64,
+    pub episodes: usize,
+}
+
+/// The three tables, one row per method.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct MethodTables {
+    pub ttf: Vec<MethodTtfRow>,
+    pub platform: Vec<MethodPlatformRow>,
+    pub race: Vec<MethodRaceRow>,
+}
+
+/// Mean over strata of each stratum's mean.
+fn mean_of_means(strata: &[Vec<f64>]) -> f64 {
+    mean(&strata.iter().map(|s| mean(s)).collect::<Vec<_>>())
+}
+
+impl MethodTables {
+    pub fn new(
+        spec: &ExperimentSpec,
+        ttf: Option<&TtfReport>,
+        platform: Option<&PlatformReport>,
+        race: Option<&RaceReport>,
+    ) -> MethodTables {
+        let b = &spec.bootstrap;
+        let mut out = MethodTables::default();
+        if let Some(t) = ttf {
+            let labels: Vec<String> = t.cells.iter().map(|c| c.policy.clone()).collect();
+            for m in methods_of(spec, &labels) {
+                for c in t.cells.iter().filter(|c| c.policy == m.label) {
+                    let cells: Vec<_> = m
+                        .seeds
+                        .iter()
+                        .filter_map(|s| {
+                            t.cells.iter().find(|o| {
+                                &o.policy == s
+                                    && o.load == c.load
+                                    && o.terrain == c.terrain
+                                    && o.push == c.push
+                            })
+                        })
+                        .collect();
+                    // every seed's cell has the same episode length (the same scenario)
+                    let len = c.episode_steps.max(1) as f64;
+                    let strata: Vec<Vec<f64>> = cells
+                        .iter()
+                        .map(|o| o.steps_per_robot.iter().map(|&s| s as f64).collect())
+                        .collect();
+                    let cell = format!("ttf/{{}}/{}/{}/{}", c.load.name(), c.terrain, c.push);
+                    out.ttf.push(MethodTtfRow {
+                        load: c.load.name().to_string(),
+                        terrain: c.terrain.clone(),
+                        push: c.push,
+                        ttf: bootstrap_strata(
+                            &strata,
+                            |s| mean_of_means(s) / len,
+                            b.resamples,
+                            b.level,
+                            pooled_seed(b.seed, &m, &cell),
+                        ),
+                        per_seed: strata.iter().map(|s| mean(s) / len).collect(),
+                        robots: cells.iter().map(|o| o.robots).sum(),
+                        method: m.clone(),
+                    });
+                }
+            }
+        }
+        if let Some(p) = platform {
+            let labels: Vec<String> = p.cells.iter().map(|c| c.policy.clone()).collect();
+            for m in methods_of(spec, &labels) {
+                for c in p.cells.iter().filter(|c| c.policy == m.label) {
+                    let cells: Vec<_> = m
+                        .seeds
+                        .iter()
+                        .filter_map(|s| {
+                            p.cells
+                                .iter()
+                                .find(|o| &o.policy == s && o.height_m == c.height_m)
+                        })
+                        .collect();
+                    let strata: Vec<Vec<f64>> = cells
+                        .iter()
+                        .map(|o| {
+                            o.success_per_robot
+                                .iter()
+                                .map(|&s| if s { 100.0 } else { 0.0 })
+                                .collect()
+                        })
+                        .collect();
+                    let cell = format!("platform/{{}}/{}", c.height_m);
+                    out.platform.push(MethodPlatformRow {
+                        height_m: c.height_m,
+                        success_pct: bootstrap_strata(
+                            &strata,
+                            mean_of_means,
+                            b.resamples,
+                            b.level,
+                            pooled_seed(b.seed, &m, &cell),
+                        ),
+                        per_seed: strata.iter().map(|s| mean(s)).collect(),
+                        robots: cells.iter().map(|o| o.robots).sum(),
+                        method: m.clone(),
+                    });
+                }
+            }
+        }
+        if let Some(r) = race {
+            let per_agent = r.options.episodes.max(1);
+            let labels: Vec<String> = r.rows.iter().map(|c| c.name.clone()).collect();
+            for m in methods_of(spec, &labels) {
+                let rows: Vec<_> = m
+                    .seeds
+                    .iter()
+                    .filter_map(|s| r.rows.iter().find(|o| &o.name == s))
+                    .collect();
+                // agents are the units: each keeps its episodes together
+                let strata: Vec<Vec<Vec<f64>>> = rows
+                    .iter()
+                    .map(|o| o.returns.chunks(per_agent).map(|c| c.to_vec()).collect())
+                    .collect();
+                let est = |q: f64, name: &str| {
+                    let pooled = move |s: &[Vec<Vec<f64>>]| {
+                        let all: Vec<f64> = s.iter().flatten().flatten().copied().collect();
+                        quantile(&all, q)
+                    };
+                    let cell = format!("race/{{}}/{name}");
+                    bootstrap_strata(
+                        &strata,
+                        pooled,
+                        b.resamples,
+                        b.level,
+                        pooled_seed(b.seed, &m, &cell),
+                    )
+                };
+                let episodes: usize = rows.iter().map(|o| o.episodes).sum();
+                out.race.push(MethodRaceRow {
+                    q25: est(0.25, "q25"),
+                    q50: est(0.5, "q50"),
+                    q75: est(0.75, "q75"),
+                    per_seed: rows.iter().map(|o| [o.q25, o.q50, o.q75]).collect(),
+                    fall_fraction: rows
+                        .iter()
+                        .map(|o| o.fall_fraction * o.episodes as f64)
+                        .sum::<f64>()
+                        / episodes.max(1) as f64,
+                    episodes,
+                    method: m.clone(),
+                });
+            }
+        }
+        out
+    }
+}
+
+/// `0.930 [0.85, 0.99] {0.93, 1.00}`: the estimate, its interval and each seed's value.
+pub fn show_with_seeds(e: &Estimate, per_seed: &[f64], digits: usize) -> String {
+    if per_seed.len() < 2 {
+        return e.show(digits);
+    }
+    let seeds: Vec<String> = per_seed
+        .iter()
+        .map(|v| format!("{v:.d$}", d = digits))
+        .collect();
+    format!("{} {{{}}}", e.show(digits), seeds.join(", "))
+}
