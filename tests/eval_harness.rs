@@ -404,7 +404,7 @@ fn platform_and_race_tables_with_untrained_checkpoints() {
         hysteresis: 0.0,
         min_safe_steps: 0,
     };
-    let r = evaluate_race(&policies, Some(&meta), &race, |_| {}).unwrap();
+    let r = evaluate_race(&policies, std::slice::from_ref(&meta), &race, |_| {}).unwrap();
     assert_eq!(r.rows.len(), 3);
     for row in &r.rows {
         assert_eq!(row.episodes, 6, "{}", row.name);

@@ -82,10 +82,19 @@ methods = ["Baseline", "RALL seed 2"]
 agents = 2
 episodes = 1
 
-[meta]
+[[meta]]
 label = "Meta"
 risky = "RALL eta=1"
 safe = "RALL"
+threshold_quantile = 0.9
+calibration_robots = 2
+hysteresis_fraction = 0.2
+min_safe_steps = 5
+
+[[meta]]
+label = "Meta seed 2"
+risky = "RALL eta=1"
+safe = "RALL seed 2"
 threshold_quantile = 0.9
 calibration_robots = 2
 hysteresis_fraction = 0.2
@@ -206,6 +215,8 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         }
     }
     assert!(md.contains("RALL (2 seeds)"), "{md}");
+    // the two meta controllers switch between runs of the same two names: one method
+    assert!(md.contains("| Meta (2 seeds) |"), "{md}");
     for fig in ["ttf.svg", "platform.svg", "race.svg", "race_iqr.svg"] {
         let svg = std::fs::read_to_string(dir.path().join("results-a/figures").join(fig)).unwrap();
         assert!(svg.starts_with("<svg") && svg.len() > 500, "{fig}");

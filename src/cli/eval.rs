@@ -536,7 +536,7 @@ fn race(a: &RaceArgs) -> Result<()> {
         course_seed: a.course_seed,
         params,
     };
-    let report = evaluate_race(&policies, meta.as_ref(), &opts, |r| {
+    let report = evaluate_race(&policies, meta.as_slice(), &opts, |r| {
         eprintln!(
             "{:<16} returns q0.25 {:.3}  q0.5 {:.3}  q0.75 {:.3}  ({} episodes, {:.1}% falls)",
             r.name,

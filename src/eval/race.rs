@@ -437,11 +437,11 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
     Ok((eps, meta))
 }
 
-/// Runs every policy, then the meta controller (`meta`: its settings with the
-/// names of its RISKY and SAFE policies in `policies`).
+/// Runs every policy, then each meta controller (`metas`: their settings with the
+/// names of their RISKY and SAFE policies in `policies`).
 pub fn evaluate_race(
     policies: &[NamedPolicy],
-    meta: Option<&MetaConfig>,
+    metas: &[MetaConfig],
     opts: &RaceOptions,
     mut progress: impl FnMut(&RaceRow),
 ) -> Result<RaceReport> {
@@ -456,7 +456,7 @@ pub fn evaluate_race(
         progress(&row);
         rows.push(row);
     }
-    if let Some(cfg) = meta {
+    for cfg in metas {
         let find = |n: &str| {
             policies
                 .iter()

@@ -27,6 +27,7 @@ use crate::eval::{
 use crate::runner::{train, Progress, RunDir, LATEST};
 pub use results::ExperimentResults;
 pub use spec::ExperimentSpec;
+use spec::MetaSpec;
 
 /// What to do.
 #[derive(Debug, Clone)]
@@ -315,12 +316,7 @@ fn parse_load(s: &str) -> Result<Load> {
 
 /// The meta controller's threshold by the experiment's rule: a quantile of the
 /// risky critic's IQR over robots walking one episode on flat ground.
-pub fn calibrate_threshold(
-    spec: &ExperimentSpec,
-    risky: &NamedPolicy,
-    threads: usize,
-) -> Result<f32> {
-    let m = &spec.meta;
+pub fn calibrate_threshold(m: &MetaSpec, risky: &NamedPolicy, threads: usize) -> Result<f32> {
     anyhow::ensure!(
         risky.learner.config().critic == crate::learn::CriticKind::Iqn,
         "meta.risky = {:?} has a scalar critic: the meta controller needs the IQR of a value distribution (an IQN critic)",
@@ -471,35 +467,39 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         )?)
     };
 
-    stage(4, "meta controller threshold (rule of the experiment file)");
-    let with_meta = available.contains(&spec.meta.risky) && available.contains(&spec.meta.safe);
-    let meta = if with_meta {
-        let risky = load_run(spec, &spec.meta.risky)?;
-        let threshold = calibrate_threshold(spec, &risky, threads)?;
+    stage(
+        4,
+        "meta controller thresholds (rule of the experiment file)",
+    );
+    let mut metas = Vec::new();
+    for m in &spec.meta {
+        if !(available.contains(&m.risky) && available.contains(&m.safe)) {
+            eprintln!(
+                "  {} left out: {} or {} has no checkpoint",
+                m.label, m.risky, m.safe
+            );
+            continue;
+        }
+        let risky = load_run(spec, &m.risky)?;
+        let threshold = calibrate_threshold(m, &risky, threads)?;
         eprintln!(
-            "  threshold {threshold:.4} = quantile {} of {}'s IQR on flat ground",
-            spec.meta.threshold_quantile, spec.meta.risky
+            "  {}: threshold {threshold:.4} = quantile {} of {}'s IQR on flat ground",
+            m.label, m.threshold_quantile, m.risky
         );
-        Some(MetaConfig {
-            name: spec.meta.label.clone(),
-            risky: spec.meta.risky.clone(),
-            safe: spec.meta.safe.clone(),
+        metas.push(MetaConfig {
+            name: m.label.clone(),
+            risky: m.risky.clone(),
+            safe: m.safe.clone(),
             threshold,
-            hysteresis: threshold * spec.meta.hysteresis_fraction,
-            min_safe_steps: spec.meta.min_safe_steps,
-        })
-    } else {
-        eprintln!(
-            "  left out: {} or {} has no checkpoint",
-            spec.meta.risky, spec.meta.safe
-        );
-        None
-    };
+            hysteresis: threshold * m.hysteresis_fraction,
+            min_safe_steps: m.min_safe_steps,
+        });
+    }
 
     stage(5, "race track");
     let mut race_labels = have(&spec.race.methods);
-    if meta.is_some() {
-        for l in [&spec.meta.risky, &spec.meta.safe] {
+    for m in &metas {
+        for l in [&m.risky, &m.safe] {
             if !race_labels.contains(l) {
                 race_labels.push(l.clone());
             }
@@ -518,7 +518,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     } else {
         Some(evaluate_race(
             &load_runs(spec, &race_labels)?,
-            meta.as_ref(),
+            &metas,
             &race_opts,
             |r| {
                 eprintln!(
@@ -534,7 +534,6 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         tracking,
         ttf,
         platform,
-        meta.map(|m| m.threshold),
         race,
         start.elapsed().as_secs_f64(),
     ))

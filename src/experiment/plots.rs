@@ -202,16 +202,31 @@ fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     root.present().map_err(err)
 }
 
+/// One panel per meta controller, stacked.
 fn race_iqr_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
-    let root = SVGBackend::new(path, (820, 380)).into_drawing_area();
+    let root = SVGBackend::new(path, (820, 380 * r.meta.len().max(1) as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    let Some(m) = &r.meta else {
-        return root.present().map_err(err);
-    };
+    for (m, area) in r
+        .meta
+        .iter()
+        .zip(root.split_evenly((r.meta.len().max(1), 1)))
+    {
+        race_iqr_panel(m, &area)?;
+    }
+    root.present().map_err(err)
+}
+
+fn race_iqr_panel<DB: DrawingBackend>(
+    m: &super::results::MetaSummary,
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
     let bins = &m.iqr_by_x;
     let x_max = bins.iter().map(|b| b.x0_m + 0.5).fold(1.0, f64::max);
     let iqr_max = bins.iter().map(|b| b.mean_iqr).fold(1e-6, f64::max) * 1.15;
-    let mut chart = ChartBuilder::on(&root)
+    let mut chart = ChartBuilder::on(root)
         .caption(
             format!("{}'s critic IQR along the race track", m.risky),
             ("sans-serif", 18),
@@ -256,7 +271,7 @@ fn race_iqr_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
         .background_style(WHITE.mix(0.8))
         .draw()
         .map_err(err)?;
-    root.present().map_err(err)
+    Ok(())
 }
 
 fn unique(it: impl Iterator<Item = String>) -> Vec<String> {

@@ -31,14 +31,22 @@ impl Method {
 }
 
 /// Groups `labels` (one table's evaluated runs, in table order) into methods: labels of
-/// runs with the same `name` go together; a label that is no run (the meta controller)
-/// is a method of its own.
+/// runs with the same `name` go together, and so do meta controllers switching between
+/// runs of the same two names (seed 1's pair, seed 2's pair).
 pub fn methods_of(spec: &ExperimentSpec, labels: &[String]) -> Vec<Method> {
+    let name = |label: &str| spec.run(label).map(|r| r.name.clone());
     let key = |label: &str| {
-        spec.runs
-            .iter()
-            .find(|r| r.label == label)
-            .map_or(format!("label:{label}"), |r| format!("run:{}", r.name))
+        if let Some(n) = name(label) {
+            return format!("run:{n}");
+        }
+        match spec.meta.iter().find(|m| m.label == label) {
+            Some(m) => format!(
+                "meta:{}+{}",
+                name(&m.risky).unwrap_or_default(),
+                name(&m.safe).unwrap_or_default()
+            ),
+            None => format!("label:{label}"),
+        }
     };
     let mut out: Vec<(String, Method)> = Vec::new();
     for l in labels {
@@ -58,7 +66,26 @@ pub fn methods_of(spec: &ExperimentSpec, labels: &[String]) -> Vec<Method> {
             )),
         }
     }
-    out.into_iter().map(|(_, m)| m).collect()
+    // seeds in the experiment file's order; the first names the method
+    let order = |l: &String| {
+        spec.runs
+            .iter()
+            .position(|r| &r.label == l)
+            .or_else(|| {
+                spec.meta
+                    .iter()
+                    .position(|m| &m.label == l)
+                    .map(|i| spec.runs.len() + i)
+            })
+            .unwrap_or(usize::MAX)
+    };
+    out.into_iter()
+        .map(|(_, mut m)| {
+            m.seeds.sort_by_key(order);
+            m.label = m.seeds[0].clone();
+            m
+        })
+        .collect()
 }
 
 /// The bootstrap seed of a method's cell: a one-seed method uses its run's cell name, so

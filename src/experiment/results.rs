@@ -86,7 +86,8 @@ pub struct ExperimentResults {
     pub ttf: Vec<TtfRow>,
     pub platform: Vec<PlatformRow>,
     pub race: Vec<RaceRow>,
-    pub meta: Option<MetaSummary>,
+    /// One per meta controller (`[[meta]]`).
+    pub meta: Vec<MetaSummary>,
     /// The three tables again, one row per method over its seeds.
     pub methods: MethodTables,
     /// Not part of the tables (they are reproducible to the byte; this is not).
@@ -109,7 +110,6 @@ impl ExperimentResults {
         tracking: Vec<(String, TrackingReport)>,
         ttf: Option<TtfReport>,
         platform: Option<PlatformReport>,
-        threshold: Option<f32>,
         race: Option<RaceReport>,
         eval_wall_s: f64,
     ) -> ExperimentResults {
@@ -204,7 +204,7 @@ impl ExperimentResults {
             })
             .collect();
         let per_agent = race.as_ref().map_or(1, |r| r.options.episodes.max(1));
-        let mut meta = None;
+        let mut meta = Vec::new();
         let mut race_rows = Vec::new();
         for r in race.iter().flat_map(|r| &r.rows) {
             // agents are the bootstrap units: each keeps its episodes together
@@ -225,20 +225,20 @@ impl ExperimentResults {
                 fall_fraction: r.fall_fraction,
                 episodes: r.episodes,
             });
-            if let Some(m) = &r.meta {
-                meta = Some(MetaSummary {
+            if let (Some(m), Some(ms)) = (&r.meta, spec.meta.iter().find(|m| m.label == r.name)) {
+                meta.push(MetaSummary {
                     label: r.name.clone(),
                     risky: m.config.risky.clone(),
                     safe: m.config.safe.clone(),
                     rule: format!(
                         "threshold = quantile {} of {}'s critic IQR over {} robots x one episode on flat ground (random commands); back below {:.0}% of it after at least {} steps",
-                        spec.meta.threshold_quantile,
-                        spec.meta.risky,
-                        spec.meta.calibration_robots,
-                        100.0 * (1.0 - spec.meta.hysteresis_fraction),
-                        spec.meta.min_safe_steps
+                        ms.threshold_quantile,
+                        ms.risky,
+                        ms.calibration_robots,
+                        100.0 * (1.0 - ms.hysteresis_fraction),
+                        ms.min_safe_steps
                     ),
-                    threshold: threshold.unwrap_or(m.config.threshold),
+                    threshold: m.config.threshold,
                     safe_fraction: m.safe_fraction,
                     switches_per_episode: m.switches_per_episode,
                     iqr_by_x: m.iqr_by_x.clone(),
@@ -321,7 +321,7 @@ impl ExperimentResults {
             s,
             "Every run on its own (the tables above pool these by method).\n"
         );
-        let _ = writeln!(s, "## Table I: Time to Fall\n");
+        let _ = writeln!(s, "### Table I: Time to Fall\n");
         let _ = writeln!(
             s,
             "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
@@ -348,7 +348,7 @@ impl ExperimentResults {
                 let _ = writeln!(s, "{line}");
             }
         }
-        let _ = writeln!(s, "\n## Table II: walking off a platform (success %)\n");
+        let _ = writeln!(s, "\n### Table II: walking off a platform (success %)\n");
         let _ = writeln!(s, "| Height | Method | ours | paper | robots |");
         let _ = writeln!(s, "|---:|---|---:|---:|---:|");
         for r in &self.platform {
@@ -362,7 +362,7 @@ impl ExperimentResults {
                 r.robots
             );
         }
-        let _ = writeln!(s, "\n## Race track: return quantiles\n");
+        let _ = writeln!(s, "\n### Race track: return quantiles\n");
         let _ = writeln!(
             s,
             "| Method | q0.25 (worst case) | q0.5 | q0.75 (best case) | mean | falls | episodes |"
@@ -381,7 +381,7 @@ impl ExperimentResults {
                 r.episodes
             );
         }
-        if let Some(m) = &self.meta {
+        for m in &self.meta {
             let _ = writeln!(
                 s,
                 "\nMeta controller {}: {} (risk neutral) / {} (risk averse); {}: {:.4}. On the race it acted with {} for {:.1}% of robot-steps, {:.2} switches per episode.",

@@ -28,7 +28,8 @@ pub struct ExperimentSpec {
     pub ttf: TtfSpec,
     pub platform: PlatformSpec,
     pub race: RaceSpec,
-    pub meta: MetaSpec,
+    /// One IQR meta controller per pair of seeds (`[[meta]]`).
+    pub meta: Vec<MetaSpec>,
     #[serde(default)]
     pub bootstrap: BootstrapSpec,
     #[serde(default)]
@@ -218,10 +219,18 @@ impl ExperimentSpec {
         for m in &self.race.methods {
             known(m, "race.methods")?;
         }
-        known(&self.meta.risky, "meta.risky")?;
-        known(&self.meta.safe, "meta.safe")?;
-        if !(0.0..=1.0).contains(&self.meta.threshold_quantile) {
-            bail!("meta.threshold_quantile must be in [0, 1]");
+        for (i, m) in self.meta.iter().enumerate() {
+            known(&m.risky, "meta.risky")?;
+            known(&m.safe, "meta.safe")?;
+            if !(0.0..=1.0).contains(&m.threshold_quantile) {
+                bail!("meta {:?}: threshold_quantile must be in [0, 1]", m.label);
+            }
+            if self.run(&m.label).is_some() || self.meta[..i].iter().any(|o| o.label == m.label) {
+                bail!(
+                    "meta label {:?} is already taken by a run or another [[meta]]",
+                    m.label
+                );
+            }
         }
         if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
             bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");
