@@ -171,7 +171,7 @@ mod tests {
     fn one_stratum_is_the_plain_bootstrap_and_strata_keep_their_weights() {
         let units: Vec<f64> = (0..30).map(|i| ((i * 7) % 11) as f64).collect();
         let plain = bootstrap(&units, mean, 400, 0.95, 9);
-        let one = bootstrap_strata(&[units.clone()], |s| mean(&s[0]), 400, 0.95, 9);
+        let one = bootstrap_strata(std::slice::from_ref(&units), |s| mean(&s[0]), 400, 0.95, 9);
         assert_eq!(plain, one);
         // two seeds far apart: equal weight per seed whatever their sizes, and the
         // within-seed resampling never mixes them (every resample's mean stays ~5.5)
