@@ -403,7 +403,13 @@ fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
             ..Default::default()
         },
     };
-    let report = rall::eval::evaluate_race(&[risky, student], Some(&meta), &opts, |_| {}).unwrap();
+    let report = rall::eval::evaluate_race(
+        &[risky, student],
+        std::slice::from_ref(&meta),
+        &opts,
+        |_| {},
+    )
+    .unwrap();
     let m = report.rows.iter().find(|r| r.name == "meta").unwrap();
     let log = m.meta.as_ref().unwrap();
     assert!(
