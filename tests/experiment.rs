@@ -288,6 +288,28 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
 }
 
 #[test]
+fn a_single_meta_table_is_one_controller_and_a_bad_key_in_it_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = spec_text(dir.path(), "r");
+    // the file as it was before [[meta]]: one [meta] table
+    let cut = text.find("[[meta]]\nlabel = \"Meta seed 2\"").unwrap();
+    let end = text.find("[bootstrap]").unwrap();
+    let single = format!("{}{}", &text[..cut], &text[end..]).replace("[[meta]]", "[meta]");
+    let file = dir.path().join("single.toml");
+    std::fs::write(&file, &single).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    assert_eq!(spec.meta.len(), 1);
+    assert_eq!(spec.meta[0].label, "Meta");
+    std::fs::write(
+        &file,
+        single.replace("min_safe_steps = 5", "min_safe_step = 5"),
+    )
+    .unwrap();
+    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    assert!(e.contains("min_safe_step"), "{e}");
+}
+
+#[test]
 fn an_experiment_file_naming_an_unknown_method_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let text = spec_text(dir.path(), "r").replace(

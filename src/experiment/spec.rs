@@ -28,12 +28,25 @@ pub struct ExperimentSpec {
     pub ttf: TtfSpec,
     pub platform: PlatformSpec,
     pub race: RaceSpec,
-    /// One IQR meta controller per pair of seeds (`[[meta]]`).
+    /// One IQR meta controller per pair of seeds (`[[meta]]`; a single `[meta]` table
+    /// is one).
+    #[serde(deserialize_with = "one_or_more")]
     pub meta: Vec<MetaSpec>,
     #[serde(default)]
     pub bootstrap: BootstrapSpec,
     #[serde(default)]
     pub paper: PaperNumbers,
+}
+
+/// `[[meta]]` tables, or one `[meta]` table (experiment files before two seeds).
+fn one_or_more<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<MetaSpec>, D::Error> {
+    use serde::de::Error;
+    match toml::Value::deserialize(d)? {
+        v @ toml::Value::Array(_) => Vec::<MetaSpec>::deserialize(v).map_err(D::Error::custom),
+        v => MetaSpec::deserialize(v)
+            .map(|m| vec![m])
+            .map_err(D::Error::custom),
+    }
 }
 
 /// One training run: a method config, a seed and a budget.
