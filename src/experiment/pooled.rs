@@ -88,17 +88,37 @@ pub fn methods_of(spec: &ExperimentSpec, labels: &[String]) -> Vec<Method> {
         .collect()
 }
 
-/// The bootstrap seed of a method's cell: a one-seed method uses its run's cell name, so
-/// its interval is the per-run table's to the digit.
-fn pooled_seed(base: u64, m: &Method, cell: &str) -> u64 {
+/// The bootstrap seed of a method's cell, `cell(label)` naming it: a one-seed method uses
+/// its run's cell name, so its interval is the per-run table's to the digit.
+fn pooled_seed(base: u64, m: &Method, cell: impl Fn(&str) -> String) -> u64 {
     if m.seeds.len() == 1 {
-        cell_seed(base, &cell.replacen("{}", &m.label, 1))
+        cell_seed(base, &cell(&m.label))
     } else {
-        cell_seed(
-            base,
-            &format!("seeds:{}", cell.replacen("{}", &m.seeds.join("+"), 1)),
-        )
+        cell_seed(base, &format!("seeds:{}", cell(&m.seeds.join("+"))))
     }
+}
+
+/// Every method's cells: for each cell of its first seed, the same cell (`same`) of each
+/// of its seeds, in seed order. `policy` names the run a cell belongs to.
+fn cells_by_method<'a, C>(
+    spec: &ExperimentSpec,
+    cells: &'a [C],
+    policy: impl Fn(&C) -> &str,
+    same: impl Fn(&C, &C) -> bool,
+) -> Vec<(Method, &'a C, Vec<&'a C>)> {
+    let labels: Vec<String> = cells.iter().map(|c| policy(c).to_string()).collect();
+    let mut out = Vec::new();
+    for m in methods_of(spec, &labels) {
+        for c in cells.iter().filter(|c| policy(c) == m.label) {
+            let seeds = m
+                .seeds
+                .iter()
+                .filter_map(|s| cells.iter().find(|o| policy(o) == s && same(o, c)))
+                .collect();
+            out.push((m.clone(), c, seeds));
+        }
+    }
+    out
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -155,130 +175,93 @@ impl MethodTables {
         race: Option<&RaceReport>,
     ) -> MethodTables {
         let b = &spec.bootstrap;
+        let ci = |strata: &[Vec<f64>], stat: &dyn Fn(&[Vec<f64>]) -> f64, seed: u64| {
+            bootstrap_strata(strata, stat, b.resamples, b.level, seed)
+        };
         let mut out = MethodTables::default();
-        if let Some(t) = ttf {
-            let labels: Vec<String> = t.cells.iter().map(|c| c.policy.clone()).collect();
-            for m in methods_of(spec, &labels) {
-                for c in t.cells.iter().filter(|c| c.policy == m.label) {
-                    let cells: Vec<_> = m
-                        .seeds
-                        .iter()
-                        .filter_map(|s| {
-                            t.cells.iter().find(|o| {
-                                &o.policy == s
-                                    && o.load == c.load
-                                    && o.terrain == c.terrain
-                                    && o.push == c.push
-                            })
-                        })
-                        .collect();
-                    // every seed's cell has the same episode length (the same scenario)
-                    let len = c.episode_steps.max(1) as f64;
-                    let strata: Vec<Vec<f64>> = cells
-                        .iter()
-                        .map(|o| o.steps_per_robot.iter().map(|&s| s as f64).collect())
-                        .collect();
-                    let cell = format!("ttf/{{}}/{}/{}/{}", c.load.name(), c.terrain, c.push);
-                    out.ttf.push(MethodTtfRow {
-                        load: c.load.name().to_string(),
-                        terrain: c.terrain.clone(),
-                        push: c.push,
-                        ttf: bootstrap_strata(
-                            &strata,
-                            |s| mean_of_means(s) / len,
-                            b.resamples,
-                            b.level,
-                            pooled_seed(b.seed, &m, &cell),
-                        ),
-                        per_seed: strata.iter().map(|s| mean(s) / len).collect(),
-                        robots: cells.iter().map(|o| o.robots).sum(),
-                        method: m.clone(),
-                    });
-                }
-            }
+        let ttf_cells = ttf.map_or(&[][..], |t| &t.cells);
+        for (m, c, cells) in cells_by_method(
+            spec,
+            ttf_cells,
+            |c| &c.policy,
+            |o, c| o.load == c.load && o.terrain == c.terrain && o.push == c.push,
+        ) {
+            // every seed's cell has the same episode length (the same scenario)
+            let len = c.episode_steps.max(1) as f64;
+            let strata: Vec<Vec<f64>> = cells
+                .iter()
+                .map(|o| o.steps_per_robot.iter().map(|&s| s as f64).collect())
+                .collect();
+            let seed = pooled_seed(b.seed, &m, |label| {
+                format!("ttf/{label}/{}/{}/{}", c.load.name(), c.terrain, c.push)
+            });
+            out.ttf.push(MethodTtfRow {
+                load: c.load.name().to_string(),
+                terrain: c.terrain.clone(),
+                push: c.push,
+                ttf: ci(&strata, &|s| mean_of_means(s) / len, seed),
+                per_seed: strata.iter().map(|s| mean(s) / len).collect(),
+                robots: cells.iter().map(|o| o.robots).sum(),
+                method: m,
+            });
         }
-        if let Some(p) = platform {
-            let labels: Vec<String> = p.cells.iter().map(|c| c.policy.clone()).collect();
-            for m in methods_of(spec, &labels) {
-                for c in p.cells.iter().filter(|c| c.policy == m.label) {
-                    let cells: Vec<_> = m
-                        .seeds
+        let platform_cells = platform.map_or(&[][..], |p| &p.cells);
+        for (m, c, cells) in cells_by_method(
+            spec,
+            platform_cells,
+            |c| &c.policy,
+            |o, c| o.height_m == c.height_m,
+        ) {
+            let strata: Vec<Vec<f64>> = cells
+                .iter()
+                .map(|o| {
+                    o.success_per_robot
                         .iter()
-                        .filter_map(|s| {
-                            p.cells
-                                .iter()
-                                .find(|o| &o.policy == s && o.height_m == c.height_m)
-                        })
-                        .collect();
-                    let strata: Vec<Vec<f64>> = cells
-                        .iter()
-                        .map(|o| {
-                            o.success_per_robot
-                                .iter()
-                                .map(|&s| if s { 100.0 } else { 0.0 })
-                                .collect()
-                        })
-                        .collect();
-                    let cell = format!("platform/{{}}/{}", c.height_m);
-                    out.platform.push(MethodPlatformRow {
-                        height_m: c.height_m,
-                        success_pct: bootstrap_strata(
-                            &strata,
-                            mean_of_means,
-                            b.resamples,
-                            b.level,
-                            pooled_seed(b.seed, &m, &cell),
-                        ),
-                        per_seed: strata.iter().map(|s| mean(s)).collect(),
-                        robots: cells.iter().map(|o| o.robots).sum(),
-                        method: m.clone(),
-                    });
-                }
-            }
+                        .map(|&s| if s { 100.0 } else { 0.0 })
+                        .collect()
+                })
+                .collect();
+            let seed = pooled_seed(b.seed, &m, |label| {
+                format!("platform/{label}/{}", c.height_m)
+            });
+            out.platform.push(MethodPlatformRow {
+                height_m: c.height_m,
+                success_pct: ci(&strata, &mean_of_means, seed),
+                per_seed: strata.iter().map(|s| mean(s)).collect(),
+                robots: cells.iter().map(|o| o.robots).sum(),
+                method: m,
+            });
         }
-        if let Some(r) = race {
-            let per_agent = r.options.episodes.max(1);
-            let labels: Vec<String> = r.rows.iter().map(|c| c.name.clone()).collect();
-            for m in methods_of(spec, &labels) {
-                let rows: Vec<_> = m
-                    .seeds
-                    .iter()
-                    .filter_map(|s| r.rows.iter().find(|o| &o.name == s))
-                    .collect();
-                // agents are the units: each keeps its episodes together
-                let strata: Vec<Vec<Vec<f64>>> = rows
-                    .iter()
-                    .map(|o| o.returns.chunks(per_agent).map(|c| c.to_vec()).collect())
-                    .collect();
-                let est = |q: f64, name: &str| {
-                    let pooled = move |s: &[Vec<Vec<f64>>]| {
-                        let all: Vec<f64> = s.iter().flatten().flatten().copied().collect();
-                        quantile(&all, q)
-                    };
-                    let cell = format!("race/{{}}/{name}");
-                    bootstrap_strata(
-                        &strata,
-                        pooled,
-                        b.resamples,
-                        b.level,
-                        pooled_seed(b.seed, &m, &cell),
-                    )
+        let per_agent = race.map_or(1, |r| r.options.episodes.max(1));
+        let race_rows = race.map_or(&[][..], |r| &r.rows);
+        for (m, _, rows) in cells_by_method(spec, race_rows, |r| &r.name, |_, _| true) {
+            // agents are the units: each keeps its episodes together
+            let strata: Vec<Vec<Vec<f64>>> = rows
+                .iter()
+                .map(|o| o.returns.chunks(per_agent).map(|c| c.to_vec()).collect())
+                .collect();
+            let est = |q: f64, name: &str| {
+                let pooled = move |s: &[Vec<Vec<f64>>]| {
+                    let all: Vec<f64> = s.iter().flatten().flatten().copied().collect();
+                    quantile(&all, q)
                 };
-                let episodes: usize = rows.iter().map(|o| o.episodes).sum();
-                out.race.push(MethodRaceRow {
-                    q25: est(0.25, "q25"),
-                    q50: est(0.5, "q50"),
-                    q75: est(0.75, "q75"),
-                    per_seed: rows.iter().map(|o| [o.q25, o.q50, o.q75]).collect(),
-                    fall_fraction: rows
-                        .iter()
-                        .map(|o| o.fall_fraction * o.episodes as f64)
-                        .sum::<f64>()
-                        / episodes.max(1) as f64,
-                    episodes,
-                    method: m.clone(),
-                });
-            }
+                let seed = pooled_seed(b.seed, &m, |label| format!("race/{label}/{name}"));
+                bootstrap_strata(&strata, pooled, b.resamples, b.level, seed)
+            };
+            let episodes: usize = rows.iter().map(|o| o.episodes).sum();
+            out.race.push(MethodRaceRow {
+                q25: est(0.25, "q25"),
+                q50: est(0.5, "q50"),
+                q75: est(0.75, "q75"),
+                per_seed: rows.iter().map(|o| [o.q25, o.q50, o.q75]).collect(),
+                fall_fraction: rows
+                    .iter()
+                    .map(|o| o.fall_fraction * o.episodes as f64)
+                    .sum::<f64>()
+                    / episodes.max(1) as f64,
+                episodes,
+                method: m,
+            });
         }
         out
     }

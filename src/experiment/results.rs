@@ -321,33 +321,24 @@ impl ExperimentResults {
             s,
             "Every run on its own (the tables above pool these by method).\n"
         );
-        let _ = writeln!(s, "### Table I: Time to Fall\n");
-        let _ = writeln!(
-            s,
-            "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
-        );
-        let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
         let loads = Self::methods_of(self.ttf.iter().map(|r| &r.load));
         let methods = Self::methods_of(self.ttf.iter().map(|r| &r.method));
-        for l in &loads {
-            for m in &methods {
-                let mut line = format!("| {l} | {m} |");
-                for (t, p) in TTF_COLUMNS {
-                    let cell = self
-                        .ttf
-                        .iter()
-                        .find(|r| &r.load == l && &r.method == m && r.terrain == t && r.push == p);
-                    let text = cell.map_or("-".into(), |c| {
-                        let paper = c
-                            .paper
-                            .map_or(String::new(), |p| format!(" (paper {p:.3})"));
-                        format!("{}{paper}", c.ttf.show(3))
-                    });
-                    let _ = write!(line, " {text} |");
-                }
-                let _ = writeln!(s, "{line}");
-            }
-        }
+        write_ttf_table(
+            &mut s,
+            &loads,
+            &methods,
+            |_, m| Some(m.to_string()),
+            |l, m, (t, p)| {
+                let c = self
+                    .ttf
+                    .iter()
+                    .find(|r| r.load == l && r.method == m && r.terrain == t && r.push == p)?;
+                let paper = c
+                    .paper
+                    .map_or(String::new(), |p| format!(" (paper {p:.3})"));
+                Some(format!("{}{paper}", c.ttf.show(3)))
+            },
+        );
         let _ = writeln!(s, "\n### Table II: walking off a platform (success %)\n");
         let _ = writeln!(s, "| Height | Method | ours | paper | robots |");
         let _ = writeln!(s, "|---:|---|---:|---:|---:|");
@@ -404,8 +395,7 @@ impl ExperimentResults {
     }
 
     /// The paper's TTF for `method` at `load` and column `k`.
-    fn paper_ttf(&self, method: &str, load: &str, k: usize) -> Option<f64> {
-        let (t, p) = TTF_COLUMNS[k];
+    fn paper_ttf(&self, method: &str, load: &str, (t, p): (&str, bool)) -> Option<f64> {
         self.ttf
             .iter()
             .find(|r| r.method == method && r.load == load && r.terrain == t && r.push == p)
@@ -420,39 +410,31 @@ impl ExperimentResults {
         }
         let _ = writeln!(s, "## Each method over its training seeds\n");
         let _ = writeln!(s, "Runs that differ only in their training seed are one method here. Its number weights every seed equally (the mean of the seeds' means; the race: quantiles of the seeds' returns pooled) with a 95% bootstrap that resamples robots within each seed; each seed's own value follows in braces, because with two seeds the spread between them is the honest measure of what another seed would do, and no interval over robots covers it.\n");
-        let _ = writeln!(s, "### Table I: Time to Fall\n");
-        let _ = writeln!(
-            s,
-            "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
-        );
-        let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
         let loads = Self::methods_of(m.ttf.iter().map(|r| &r.load));
         let labels = Self::methods_of(m.ttf.iter().map(|r| &r.method.label));
-        for l in &loads {
-            for label in &labels {
-                let Some(first) = m
-                    .ttf
+        write_ttf_table(
+            s,
+            &loads,
+            &labels,
+            |l, label| {
+                m.ttf
                     .iter()
-                    .find(|r| &r.load == l && &r.method.label == label)
-                else {
-                    continue;
-                };
-                let mut line = format!("| {l} | {} |", first.method.display());
-                for (k, (t, p)) in TTF_COLUMNS.into_iter().enumerate() {
-                    let cell = m.ttf.iter().find(|r| {
-                        &r.load == l && &r.method.label == label && r.terrain == t && r.push == p
-                    });
-                    let text = cell.map_or("-".into(), |c| {
-                        let paper = self
-                            .paper_ttf(label, l, k)
-                            .map_or(String::new(), |p| format!(" (paper {p:.3})"));
-                        format!("{}{paper}", show_with_seeds(&c.ttf, &c.per_seed, 3))
-                    });
-                    let _ = write!(line, " {text} |");
-                }
-                let _ = writeln!(s, "{line}");
-            }
-        }
+                    .find(|r| r.load == l && r.method.label == label)
+                    .map(|r| r.method.display())
+            },
+            |l, label, (t, p)| {
+                let c = m.ttf.iter().find(|r| {
+                    r.load == l && r.method.label == label && r.terrain == t && r.push == p
+                })?;
+                let paper = self
+                    .paper_ttf(label, l, (t, p))
+                    .map_or(String::new(), |p| format!(" (paper {p:.3})"));
+                Some(format!(
+                    "{}{paper}",
+                    show_with_seeds(&c.ttf, &c.per_seed, 3)
+                ))
+            },
+        );
         let _ = writeln!(s, "\n### Table II: walking off a platform (success %)\n");
         let _ = writeln!(s, "| Height | Method | ours | paper | robots |");
         let _ = writeln!(s, "|---:|---|---:|---:|---:|");
@@ -647,6 +629,35 @@ impl ExperimentResults {
             &format!("{:.2} min\n", self.evaluation_wall_clock_min),
         )?;
         super::plots::write_all(self, &dir.join("figures"))
+    }
+}
+
+/// Table I in Markdown under its heading: a row per load x method, named by
+/// `row(load, method)` (no row when it gives none), `cell(load, method, column)` in the
+/// columns of [`TTF_COLUMNS`] ("-" where it gives none).
+fn write_ttf_table(
+    s: &mut String,
+    loads: &[String],
+    methods: &[String],
+    row: impl Fn(&str, &str) -> Option<String>,
+    cell: impl Fn(&str, &str, (&str, bool)) -> Option<String>,
+) {
+    let _ = writeln!(s, "### Table I: Time to Fall\n");
+    let _ = writeln!(
+        s,
+        "| Load | Method | Flat, no push | Flat, push | Random, no push | Random, push |"
+    );
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|");
+    for l in loads {
+        for m in methods {
+            let Some(name) = row(l, m) else { continue };
+            let mut line = format!("| {l} | {name} |");
+            for col in TTF_COLUMNS {
+                let text = cell(l, m, col).unwrap_or_else(|| "-".into());
+                let _ = write!(line, " {text} |");
+            }
+            let _ = writeln!(s, "{line}");
+        }
     }
 }
 

@@ -36,7 +36,8 @@ pub fn cell_seed(seed: u64, cell: &str) -> u64 {
     fnv1a64_from(FNV1A64_OFFSET ^ seed, cell.bytes())
 }
 
-/// `statistic` of `units` with a percentile bootstrap interval at `level`.
+/// `statistic` of `units` with a percentile bootstrap interval at `level`: the
+/// one-stratum case of [`bootstrap_strata`].
 pub fn bootstrap<T: Clone>(
     units: &[T],
     statistic: impl Fn(&[T]) -> f64,
@@ -44,37 +45,18 @@ pub fn bootstrap<T: Clone>(
     level: f64,
     seed: u64,
 ) -> Estimate {
-    let value = statistic(units);
-    if units.len() < 2 {
-        return Estimate {
-            value,
-            lo: value,
-            hi: value,
-        };
-    }
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut stats = Vec::with_capacity(resamples);
-    let mut sample = Vec::with_capacity(units.len());
-    for _ in 0..resamples {
-        sample.clear();
-        for _ in 0..units.len() {
-            sample.push(units[rng.gen_range(0..units.len())].clone());
-        }
-        stats.push(statistic(&sample));
-    }
-    stats.sort_by(f64::total_cmp);
-    let alpha = (1.0 - level) / 2.0;
-    Estimate {
-        value,
-        lo: percentile(&stats, alpha),
-        hi: percentile(&stats, 1.0 - alpha),
-    }
+    bootstrap_strata(
+        &[units.to_vec()],
+        |s| statistic(&s[0]),
+        resamples,
+        level,
+        seed,
+    )
 }
 
 /// `statistic` of `strata` (a method's seeds, each a list of robots) with a percentile
 /// bootstrap that resamples units within each stratum: the seeds keep their sizes, so
-/// a statistic weighting seeds equally stays so. One stratum draws exactly what
-/// [`bootstrap`] draws.
+/// a statistic weighting seeds equally stays so.
 pub fn bootstrap_strata<T: Clone>(
     strata: &[Vec<T>],
     statistic: impl Fn(&[Vec<T>]) -> f64,
