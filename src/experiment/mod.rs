@@ -79,6 +79,12 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
                 .runner
                 .add_action_std_reset(cfg.runner.action_std_reset, loaded.progress.iteration)
                 .with_context(|| format!("run {:?} ({})", r.label, path.display()))?;
+            crate::runner::train::check_phase_one_budget(
+                &stored,
+                r.iterations,
+                loaded.progress.iteration,
+            )
+            .with_context(|| format!("run {:?} ({})", r.label, path.display()))?;
             let changed = learning_differences(&stored, &cfg);
             if !changed.is_empty() {
                 bail!(

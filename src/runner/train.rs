@@ -639,11 +639,35 @@ fn keep_runner_settings(
     stored
         .runner
         .add_action_std_reset(now.runner.action_std_reset, iteration)?;
+    check_phase_one_budget(&stored, now.runner.iterations, iteration)?;
     stored.runner.iterations = now.runner.iterations;
     stored.runner.threads = now.runner.threads;
     stored.runner.save_interval = now.runner.save_interval;
     stored.runner.log_interval = now.runner.log_interval;
     Ok(stored)
+}
+
+/// RMA's phase 1 (PPO) cannot go on once phase 2 has started: the checkpoint
+/// then holds the student, not the teacher. A run past its phase-1 end may not
+/// be given another phase-1 budget.
+pub fn check_phase_one_budget(
+    stored: &TrainConfig,
+    new_iterations: usize,
+    iteration: usize,
+) -> Result<()> {
+    let phase_one_end = stored.runner.iterations;
+    if stored.learner.adaptation.is_some()
+        && iteration > phase_one_end
+        && new_iterations != phase_one_end
+    {
+        anyhow::bail!(
+            "this RMA run is in phase 2 (iteration {iteration}; its phase 1 ended at \
+             {phase_one_end}), so its phase-1 budget cannot become {new_iterations}: \
+             phase 1 cannot go on from the student. Keep --iterations {phase_one_end}, \
+             or move the run's directory away and train it again"
+        );
+    }
+    Ok(())
 }
 
 /// " on N ranks" for N > 1.
@@ -884,5 +908,29 @@ mod tests {
         // a pid above any pid_max: its holder is gone
         std::fs::write(dir.path().join("train.lock"), "4294967295\n").unwrap();
         let _again = RunLock::acquire(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn rma_phase_one_budget_is_fixed_once_phase_two_started() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/rma.toml");
+        let mut rma = TrainConfig::from_toml_file(&path).unwrap();
+        rma.runner.iterations = 3300;
+        // phase 1 (at or before its end) may be given a longer budget
+        check_phase_one_budget(&rma, 4000, 3300).unwrap();
+        check_phase_one_budget(&rma, 4000, 1200).unwrap();
+        // in phase 2 only the same budget resumes
+        check_phase_one_budget(&rma, 3300, 3800).unwrap();
+        let e = format!(
+            "{:#}",
+            check_phase_one_budget(&rma, 4000, 3800).unwrap_err()
+        );
+        assert!(
+            e.contains("phase 2") && e.contains("3300") && e.contains("4000"),
+            "{e}"
+        );
+        // a PPO run has no phase 2: any budget
+        let mut ppo = rma.clone();
+        ppo.learner.adaptation = None;
+        check_phase_one_budget(&ppo, 4000, 3800).unwrap();
     }
 }
