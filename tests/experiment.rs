@@ -64,6 +64,7 @@ iterations = 2
 [tracking]
 episodes = 4
 seed = 7
+randomization_from = "{base}"
 
 [ttf]
 methods = ["Baseline", "RALL", "RALL seed 2"]
@@ -175,6 +176,18 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "{md}"
     );
     assert!(md.contains("Meta"), "{md}");
+    // every run also tracked under the common randomisation, here its own: the same
+    // episodes to the digit (the override changes the draws' ranges, nothing else)
+    assert!(md.contains("randomisation: lin / yaw / falls"), "{md}");
+    let runs = std::fs::read_to_string(dir.path().join("results-a/runs.csv")).unwrap();
+    for line in runs.lines().skip(1) {
+        let v: Vec<&str> = line.split(',').collect();
+        assert_eq!(
+            v[8..11],
+            v[11..14],
+            "own and common tracking differ: {line}"
+        );
+    }
     let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
     assert_eq!(ttf.lines().count(), 1 + 3 * 4, "{ttf}");
     for line in ttf.lines().skip(1) {

@@ -5,12 +5,12 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 
-use crate::config::worker_threads;
+use crate::config::{worker_threads, TrainConfig};
 use crate::eval::report::write_outputs;
 use crate::eval::{
     evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
-    ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions,
-    RaceOptions, ScenarioParams, TtfOptions,
+    with_randomization, ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy,
+    PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
 };
 use crate::learn::{CriticKind, Distortion};
 use crate::runner::load_policy;
@@ -183,6 +183,12 @@ pub struct TrackingArgs {
     /// strength, PD gain factors, centre-of-mass offset) to this file.
     #[arg(long, value_name = "FILE")]
     pub falls_csv: Option<PathBuf>,
+    /// Draw friction, added mass, motor strength, PD factors and centre of mass from this
+    /// run config's [env.randomization] instead of the checkpoint's own (e.g.
+    /// configs/baseline.toml, the paper's table III), so that policies trained under
+    /// different randomisation are judged on the same ground. Pushes stay off.
+    #[arg(long, value_name = "CONFIG")]
+    pub randomization_from: Option<PathBuf>,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -240,7 +246,12 @@ fn falls(a: &FallsArgs) -> Result<()> {
 fn tracking(a: &TrackingArgs) -> Result<()> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
     let policy = load_policy(&a.checkpoint)?;
-    let env = tracking_env(&policy.config.env);
+    let mut env = tracking_env(&policy.config.env);
+    if let Some(path) = &a.randomization_from {
+        let from = TrainConfig::from_toml_file(path)
+            .with_context(|| format!("--randomization-from {}", path.display()))?;
+        env = with_randomization(env, &from.env.randomization);
+    }
     let mode = if a.stochastic {
         ActionMode::Sampled
     } else {
@@ -261,6 +272,9 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         policy.progress.total_env_steps
     );
     println!("episodes             {} ({:?} actions)", r.episodes, mode);
+    if let Some(path) = &a.randomization_from {
+        println!("randomisation        of {}", path.display());
+    }
     println!(
         "lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)",
         r.lin_vel_score

@@ -26,7 +26,7 @@ pub use scenario::{
     ScenarioSetup, ScenarioSpec,
 };
 pub use tracking::{
-    evaluate_tracking, evaluate_tracking_with_falls, tracking_env, ActionMode, FallRecord,
-    TrackingReport,
+    evaluate_tracking, evaluate_tracking_with_falls, tracking_env, with_randomization, ActionMode,
+    FallRecord, TrackingReport,
 };
 pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport};

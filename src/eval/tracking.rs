@@ -6,7 +6,7 @@ use std::sync::Arc;
 use anyhow::Result;
 use rand::SeedableRng;
 
-use crate::env::config::PushConfig;
+use crate::env::config::{PushConfig, RandomizationConfig};
 use crate::env::terrain::TerrainKind;
 use crate::env::{build_scene, EnvConfig, EpisodeDraw, EpisodeEnd, VecEnv};
 use crate::learn::Learner;
@@ -37,6 +37,17 @@ pub fn tracking_env(training: &EnvConfig) -> EnvConfig {
     cfg.randomization.push = PushConfig::None;
     cfg.episode.randomize_initial_length = false;
     cfg
+}
+
+/// The tracking benchmark under another config's randomisation (friction, mass, motors,
+/// PD, centre of mass; never pushes): every method judged on the same ground, where
+/// [`tracking_env`] judges each under its own training draws.
+pub fn with_randomization(mut env: EnvConfig, from: &RandomizationConfig) -> EnvConfig {
+    env.randomization = RandomizationConfig {
+        push: PushConfig::None,
+        ..from.clone()
+    };
+    env
 }
 
 /// How the policy picks actions during evaluation.
@@ -300,4 +311,30 @@ pub fn evaluate_tracking_with_falls(
         unstable: ended(EpisodeEnd::Unstable),
     };
     Ok((report, falls))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn common_randomization_replaces_the_draws_and_nothing_else() {
+        let mut own = EnvConfig::default();
+        own.randomization.friction = Some([0.25, 2.5]);
+        own.randomization.kd_factor = Some([0.75, 1.25]);
+        own.reward.ang_vel_tracking = 2.5;
+        let mut from = RandomizationConfig {
+            friction: Some([0.5, 1.5]),
+            ..Default::default()
+        };
+        from.kd_factor = None;
+        let env = with_randomization(tracking_env(&own), &from);
+        assert_eq!(env.randomization.friction, Some([0.5, 1.5]));
+        assert_eq!(env.randomization.kd_factor, None);
+        assert_eq!(env.randomization.push, PushConfig::None, "pushes stay off");
+        // everything but the randomisation is the policy's own tracking benchmark
+        let mut rest = env.clone();
+        rest.randomization = tracking_env(&own).randomization;
+        assert_eq!(rest, tracking_env(&own));
+    }
 }

@@ -18,14 +18,14 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 
 use crate::config::TrainConfig;
-use crate::env::{build_scene, VecEnv};
+use crate::env::{build_scene, EnvConfig, VecEnv};
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env, ActionMode,
-    GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams,
-    TtfOptions,
+    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env,
+    with_randomization, ActionMode, GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions,
+    RaceOptions, ScenarioParams, TtfOptions,
 };
 use crate::runner::{train, Progress, RunDir, LATEST};
-pub use results::ExperimentResults;
+pub use results::{ExperimentResults, RunTracking};
 pub use spec::ExperimentSpec;
 use spec::MetaSpec;
 
@@ -397,19 +397,33 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     };
 
     stage(1, "velocity tracking of every policy");
+    let common = match &spec.tracking.randomization_from {
+        Some(path) => Some(TrainConfig::from_toml_file(path)?.env.randomization),
+        None => None,
+    };
     let mut tracking = Vec::new();
     for (r, _) in runs.iter().filter(|(r, _)| available.contains(&r.label)) {
         let p = load_run(spec, &r.label)?;
-        let env = tracking_env(&p.env);
-        let t = evaluate_tracking(
-            &p.learner,
-            &env,
-            spec.tracking.episodes,
-            threads,
-            spec.tracking.seed,
-            ActionMode::Mean,
-        )?;
-        tracking.push((r.label.clone(), t));
+        let track = |env: &EnvConfig| {
+            evaluate_tracking(
+                &p.learner,
+                env,
+                spec.tracking.episodes,
+                threads,
+                spec.tracking.seed,
+                ActionMode::Mean,
+            )
+        };
+        let own = track(&tracking_env(&p.env))?;
+        let on_common = match &common {
+            Some(c) => Some(track(&with_randomization(tracking_env(&p.env), c))?),
+            None => None,
+        };
+        tracking.push(RunTracking {
+            label: r.label.clone(),
+            own,
+            common: on_common,
+        });
     }
 
     stage(2, "table I: time to fall");

@@ -32,6 +32,24 @@ pub struct RunRow {
     pub yaw_tracking: f64,
     pub fall_rate: f64,
     pub tracking_episodes: usize,
+    /// The same under the experiment's common randomisation (`tracking.randomization_from`).
+    pub common_tracking: Option<CommonTracking>,
+}
+
+/// Tracking under the randomisation every method shares.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct CommonTracking {
+    pub lin_tracking: f64,
+    pub yaw_tracking: f64,
+    pub fall_rate: f64,
+}
+
+/// One run's tracking: under its own training randomisation, and under the common one.
+#[derive(Debug, Clone)]
+pub struct RunTracking {
+    pub label: String,
+    pub own: TrackingReport,
+    pub common: Option<TrackingReport>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -83,6 +101,8 @@ pub struct ExperimentResults {
     pub name: String,
     pub confidence: String,
     pub runs: Vec<RunRow>,
+    /// The run config whose randomisation every policy was also tracked under.
+    pub common_randomization: Option<String>,
     pub ttf: Vec<TtfRow>,
     pub platform: Vec<PlatformRow>,
     pub race: Vec<RaceRow>,
@@ -107,7 +127,7 @@ impl ExperimentResults {
     pub fn new(
         spec: &ExperimentSpec,
         runs: Vec<(RunSpec, RunState)>,
-        tracking: Vec<(String, TrackingReport)>,
+        tracking: Vec<RunTracking>,
         ttf: Option<TtfReport>,
         platform: Option<PlatformReport>,
         race: Option<RaceReport>,
@@ -122,7 +142,8 @@ impl ExperimentResults {
             .iter()
             .map(|(r, s)| {
                 let p = s.progress.clone().unwrap_or_default();
-                let t = tracking.iter().find(|(l, _)| *l == r.label).map(|(_, t)| t);
+                let found = tracking.iter().find(|t| t.label == r.label);
+                let t = found.map(|t| &t.own);
                 RunRow {
                     label: r.label.clone(),
                     config: r.config.display().to_string(),
@@ -140,6 +161,13 @@ impl ExperimentResults {
                     yaw_tracking: t.map_or(f64::NAN, |t| t.yaw_rate_score),
                     fall_rate: t.map_or(f64::NAN, |t| t.fall_rate),
                     tracking_episodes: t.map_or(0, |t| t.episodes),
+                    common_tracking: found.and_then(|t| t.common.as_ref()).map(|c| {
+                        CommonTracking {
+                            lin_tracking: c.lin_vel_score,
+                            yaw_tracking: c.yaw_rate_score,
+                            fall_rate: c.fall_rate,
+                        }
+                    }),
                 }
             })
             .collect();
@@ -254,6 +282,11 @@ impl ExperimentResults {
                 b.seed
             ),
             runs: run_rows,
+            common_randomization: spec
+                .tracking
+                .randomization_from
+                .as_ref()
+                .map(|p| p.display().to_string()),
             ttf: ttf_rows,
             platform: platform_rows,
             race: race_rows,
@@ -283,8 +316,17 @@ impl ExperimentResults {
             self.confidence
         );
         let _ = writeln!(s, "## Training runs\n");
-        let _ = writeln!(s, "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |");
-        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
+        let common = self.common_randomization.as_deref();
+        let _ = writeln!(
+            s,
+            "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |{}",
+            common.map_or(String::new(), |c| format!(" under `{c}`'s randomisation: lin / yaw / falls |"))
+        );
+        let _ = writeln!(
+            s,
+            "|---|---:|---:|---:|---:|---:|---:|---:|{}",
+            if common.is_some() { "---:|" } else { "" }
+        );
         for r in &self.runs {
             let unfinished = if r.iterations_done == 0 {
                 " (not started)"
@@ -298,9 +340,19 @@ impl ExperimentResults {
                 (_, true) => format!("{:.1}%", 100.0 * v),
                 (_, false) => format!("{v:.3}"),
             };
+            let on_common = match (common, &r.common_tracking) {
+                (None, _) => String::new(),
+                (Some(_), None) => " - |".into(),
+                (Some(_), Some(c)) => format!(
+                    " {:.3} / {:.3} / {:.1}% |",
+                    c.lin_tracking,
+                    c.yaw_tracking,
+                    100.0 * c.fall_rate
+                ),
+            };
             let _ = writeln!(
                 s,
-                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {} | {} | {} |",
+                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {} | {} | {} |{on_common}",
                 r.label,
                 r.iterations_done,
                 r.iterations_target,
@@ -312,8 +364,12 @@ impl ExperimentResults {
                 tracked(r.fall_rate, true)
             );
         }
-        let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.\n",
+        let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground, each policy under its own training randomisation); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.",
             self.runs.first().map_or(0, |r| r.tracking_episodes));
+        if let Some(c) = common {
+            let _ = writeln!(s, "The last column: the same episodes with friction, added mass, motor strength, PD factors and centre of mass drawn from `{c}` for every policy (`rall eval tracking --randomization-from {c}`), so that all methods walk on the same ground.");
+        }
+        let _ = writeln!(s);
 
         self.methods_markdown(&mut s);
         let _ = writeln!(s, "## Per training run\n");
@@ -483,11 +539,17 @@ impl ExperimentResults {
         let est =
             |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
-        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,yaw_tracking,fall_rate\n");
+        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,yaw_tracking,fall_rate,common_lin_tracking,common_yaw_tracking,common_fall_rate\n");
         for r in &self.runs {
+            let common = r.common_tracking.map_or(",,".into(), |c| {
+                format!(
+                    "{:.4},{:.4},{:.4}",
+                    c.lin_tracking, c.yaw_tracking, c.fall_rate
+                )
+            });
             let _ = writeln!(
                 runs,
-                "{},{},{},{},{},{},{:.4},{},{:.4},{:.4},{:.4}",
+                "{},{},{},{},{},{},{:.4},{},{:.4},{:.4},{:.4},{common}",
                 csv_field(&r.label),
                 csv_field(&r.config),
                 r.seed,

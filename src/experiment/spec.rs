@@ -68,6 +68,11 @@ pub struct RunSpec {
 pub struct TrackingSpec {
     pub episodes: usize,
     pub seed: u64,
+    /// A run config whose [env.randomization] every policy is also judged under
+    /// (`rall eval tracking --randomization-from`): the same ground for all methods,
+    /// beside each under its own training draws.
+    #[serde(default)]
+    pub randomization_from: Option<PathBuf>,
 }
 
 /// Table I: TTF per load x terrain x push.
@@ -244,6 +249,10 @@ impl ExperimentSpec {
                     m.label
                 );
             }
+        }
+        if let Some(p) = &self.tracking.randomization_from {
+            crate::config::TrainConfig::from_toml_file(p)
+                .with_context(|| format!("tracking.randomization_from = {:?}", p.display()))?;
         }
         if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
             bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");
