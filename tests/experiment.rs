@@ -182,11 +182,17 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     let runs = std::fs::read_to_string(dir.path().join("results-a/runs.csv")).unwrap();
     for line in runs.lines().skip(1) {
         let v: Vec<&str> = line.split(',').collect();
+        assert_eq!(v.len(), 26, "{line}");
         assert_eq!(
-            v[8..11],
-            v[11..14],
+            v[8..17],
+            v[17..26],
             "own and common tracking differ: {line}"
         );
+        // each figure inside its interval
+        for k in [8, 11, 14] {
+            let [x, lo, hi] = [v[k], v[k + 1], v[k + 2]].map(|s| s.parse::<f64>().unwrap());
+            assert!(lo <= x && x <= hi, "{line}");
+        }
     }
     let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
     assert_eq!(ttf.lines().count(), 1 + 3 * 4, "{ttf}");

@@ -8,10 +8,12 @@ use clap::{Args, Subcommand};
 use crate::config::{worker_threads, TrainConfig};
 use crate::eval::report::write_outputs;
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
-    with_randomization, ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy,
-    PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
+    evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, fall_rate,
+    lin_vel_score, tracking_env, with_randomization, yaw_rate_score, ActionMode, FallRecord,
+    GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
+    RobotTracking, ScenarioParams, TtfOptions,
 };
+use crate::experiment::stats::bootstrap;
 use crate::learn::{CriticKind, Distortion};
 use crate::runner::load_policy;
 
@@ -275,14 +277,19 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     if let Some(path) = &a.randomization_from {
         println!("randomisation        of {}", path.display());
     }
+    // 95% percentile bootstrap over robots (as `rall experiment` reports them)
+    let ci = |stat: fn(&[RobotTracking]) -> f64| bootstrap(&r.robots, stat, 1000, 0.95, a.seed);
+    let (lin, yaw, fell) = (ci(lin_vel_score), ci(yaw_rate_score), ci(fall_rate));
     println!(
-        "lin-vel tracking     {:.3}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect)",
-        r.lin_vel_score
+        "lin-vel tracking     {}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect; 95% bootstrap over robots)",
+        lin.show(3)
     );
-    println!("yaw-rate tracking    {:.3}", r.yaw_rate_score);
+    println!("yaw-rate tracking    {}", yaw.show(3));
     println!(
-        "fall rate            {:.1}%   (trunk contact {}, tilt {}, physics failure {})",
-        100.0 * r.fall_rate,
+        "fall rate            {:.1}% [{:.1}, {:.1}]   (trunk contact {}, tilt {}, physics failure {})",
+        100.0 * fell.value,
+        100.0 * fell.lo,
+        100.0 * fell.hi,
         r.trunk_contacts,
         r.tilts,
         r.unstable

@@ -26,7 +26,7 @@ pub use scenario::{
     ScenarioSetup, ScenarioSpec,
 };
 pub use tracking::{
-    evaluate_tracking, evaluate_tracking_with_falls, tracking_env, with_randomization, ActionMode,
-    FallRecord, TrackingReport,
+    evaluate_tracking, evaluate_tracking_with_falls, fall_rate, lin_vel_score, tracking_env,
+    with_randomization, yaw_rate_score, ActionMode, FallRecord, RobotTracking, TrackingReport,
 };
 pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport};

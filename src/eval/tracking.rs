@@ -11,8 +11,41 @@ use crate::env::terrain::TerrainKind;
 use crate::env::{build_scene, EnvConfig, EpisodeDraw, EpisodeEnd, VecEnv};
 use crate::learn::Learner;
 
+/// One robot's share of the tracking figures: the unit a bootstrap resamples.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct RobotTracking {
+    /// Sums over the robot's scored steps of the two per-step scores.
+    pub lin_score_sum: f64,
+    pub yaw_score_sum: f64,
+    pub scored_steps: usize,
+    pub fell: bool,
+}
+
+/// Mean over robot-steps of the linear tracking score (0 without steps).
+pub fn lin_vel_score(robots: &[RobotTracking]) -> f64 {
+    step_mean(robots, |r| r.lin_score_sum)
+}
+
+/// Mean over robot-steps of the yaw-rate tracking score (0 without steps).
+pub fn yaw_rate_score(robots: &[RobotTracking]) -> f64 {
+    step_mean(robots, |r| r.yaw_score_sum)
+}
+
+/// Fraction of robots whose episode ended before the time-out.
+pub fn fall_rate(robots: &[RobotTracking]) -> f64 {
+    robots.iter().filter(|r| r.fell).count() as f64 / robots.len().max(1) as f64
+}
+
+fn step_mean(robots: &[RobotTracking], sum: impl Fn(&RobotTracking) -> f64) -> f64 {
+    let steps: usize = robots.iter().map(|r| r.scored_steps).sum();
+    if steps == 0 {
+        return 0.0;
+    }
+    robots.iter().map(sum).sum::<f64>() / steps as f64
+}
+
 /// Tracking figures over all evaluated episodes.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct TrackingReport {
     pub episodes: usize,
     /// Mean over robot-steps of exp(-|v_cmd_xy - v_xy|^2 / sigma), in [0, 1].
@@ -27,6 +60,8 @@ pub struct TrackingReport {
     pub trunk_contacts: usize,
     pub tilts: usize,
     pub unstable: usize,
+    /// Each robot's figures (the scores and fall rate above are their pooled means).
+    pub robots: Vec<RobotTracking>,
 }
 
 /// The training env config made into the tracking benchmark: flat ground, no
@@ -187,7 +222,7 @@ pub fn evaluate_tracking_with_falls(
     let max_steps = cfg.max_episode_steps();
     let mut alive = vec![true; episodes];
     envs.drain_episodes().for_each(drop);
-    let (mut lin_sum, mut yaw_sum, mut samples) = (0.0, 0.0, 0usize);
+    let mut robots = vec![RobotTracking::default(); episodes];
     let mut obs = envs.batch().obs.clone();
     let limits: Vec<f64> = (0..crate::robot::NUM_JOINTS)
         .map(|j| cfg.control.torque_limit_nm(j))
@@ -223,9 +258,10 @@ pub fn evaluate_tracking_with_falls(
             let v = s.base_lin_vel_body_mps;
             let lin_err = (c[0] - v[0]).powi(2) + (c[1] - v[1]).powi(2);
             let yaw_err = (c[2] - s.base_ang_vel_body_rad_s[2]).powi(2);
-            lin_sum += (-lin_err / sigma).exp();
-            yaw_sum += (-yaw_err / sigma).exp();
-            samples += 1;
+            let robot = &mut robots[i];
+            robot.lin_score_sum += (-lin_err / sigma).exp();
+            robot.yaw_score_sum += (-yaw_err / sigma).exp();
+            robot.scored_steps += 1;
             let saturated = s
                 .torques_nm
                 .iter()
@@ -291,24 +327,20 @@ pub fn evaluate_tracking_with_falls(
             })
         })
         .collect();
+    for (robot, (_, fell)) in robots.iter_mut().zip(&lengths) {
+        robot.fell = *fell;
+    }
     let report = TrackingReport {
         episodes,
-        lin_vel_score: if samples > 0 {
-            lin_sum / samples as f64
-        } else {
-            0.0
-        },
-        yaw_rate_score: if samples > 0 {
-            yaw_sum / samples as f64
-        } else {
-            0.0
-        },
-        fall_rate: lengths.iter().filter(|(_, fell)| *fell).count() as f64 / n,
+        lin_vel_score: lin_vel_score(&robots),
+        yaw_rate_score: yaw_rate_score(&robots),
+        fall_rate: fall_rate(&robots),
         mean_episode_length_steps: lengths.iter().map(|(l, _)| *l as f64).sum::<f64>() / n,
         max_episode_length_steps: max_steps,
         trunk_contacts: ended(EpisodeEnd::TrunkContact),
         tilts: ended(EpisodeEnd::Tilt),
         unstable: ended(EpisodeEnd::Unstable),
+        robots,
     };
     Ok((report, falls))
 }
@@ -336,5 +368,27 @@ mod tests {
         let mut rest = env.clone();
         rest.randomization = tracking_env(&own).randomization;
         assert_eq!(rest, tracking_env(&own));
+    }
+}
+
+#[cfg(test)]
+mod robot_tests {
+    use super::*;
+
+    #[test]
+    fn scores_pool_robot_steps_and_falls_count_robots() {
+        let robot = |lin: f64, steps: usize, fell: bool| RobotTracking {
+            lin_score_sum: lin,
+            yaw_score_sum: 0.5 * lin,
+            scored_steps: steps,
+            fell,
+        };
+        // a robot that fell early weighs by its steps, not as one robot
+        let robots = [robot(90.0, 100, false), robot(1.0, 10, true)];
+        assert!((lin_vel_score(&robots) - 91.0 / 110.0).abs() < 1e-12);
+        assert!((yaw_rate_score(&robots) - 45.5 / 110.0).abs() < 1e-12);
+        assert_eq!(fall_rate(&robots), 0.5);
+        assert_eq!(lin_vel_score(&[]), 0.0);
+        assert_eq!(fall_rate(&[]), 0.0);
     }
 }

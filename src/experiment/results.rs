@@ -13,7 +13,10 @@ use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
 use super::RunState;
 use crate::eval::race::IqrBin;
 use crate::eval::report::csv_field;
-use crate::eval::{PlatformReport, RaceReport, TrackingReport, TtfReport};
+use crate::eval::{
+    fall_rate, lin_vel_score, yaw_rate_score, PlatformReport, RaceReport, RobotTracking,
+    TrackingReport, TtfReport,
+};
 
 /// One training run: budget, what it reached, how it tracks commands.
 #[derive(Debug, Clone, Serialize)]
@@ -28,20 +31,55 @@ pub struct RunRow {
     pub wall_clock_h: f64,
     /// Mean terrain-curriculum level over the envs at the checkpoint (rough ground).
     pub terrain_level: Option<f64>,
-    pub lin_tracking: f64,
-    pub yaw_tracking: f64,
-    pub fall_rate: f64,
+    /// Under the run's own training randomisation (`None`: not evaluated).
+    pub tracking: Option<TrackingEstimates>,
     pub tracking_episodes: usize,
     /// The same under the experiment's common randomisation (`tracking.randomization_from`).
-    pub common_tracking: Option<CommonTracking>,
+    pub common_tracking: Option<TrackingEstimates>,
 }
 
-/// Tracking under the randomisation every method shares.
+/// The tracking figures with bootstrap intervals over robots.
 #[derive(Debug, Clone, Copy, Serialize)]
-pub struct CommonTracking {
-    pub lin_tracking: f64,
-    pub yaw_tracking: f64,
-    pub fall_rate: f64,
+pub struct TrackingEstimates {
+    pub lin: Estimate,
+    pub yaw: Estimate,
+    pub falls: Estimate,
+}
+
+impl TrackingEstimates {
+    /// `cell` names the bootstrap's seed (see [`cell_seed`]).
+    fn new(t: &TrackingReport, b: &crate::experiment::spec::BootstrapSpec, cell: &str) -> Self {
+        let ci = |what: &str, stat: fn(&[RobotTracking]) -> f64| {
+            let seed = cell_seed(b.seed, &format!("{cell}/{what}"));
+            bootstrap(&t.robots, stat, b.resamples, b.level, seed)
+        };
+        TrackingEstimates {
+            lin: ci("lin", lin_vel_score),
+            yaw: ci("yaw", yaw_rate_score),
+            falls: ci("falls", fall_rate),
+        }
+    }
+
+    /// `lin / yaw / falls` with their intervals.
+    fn cells(&self) -> [String; 3] {
+        let pct = |e: &Estimate| {
+            format!(
+                "{:.1}% [{:.1}, {:.1}]",
+                100.0 * e.value,
+                100.0 * e.lo,
+                100.0 * e.hi
+            )
+        };
+        [self.lin.show(3), self.yaw.show(3), pct(&self.falls)]
+    }
+
+    fn csv(&self) -> String {
+        [self.lin, self.yaw, self.falls]
+            .iter()
+            .map(|e| format!("{:.4},{:.4},{:.4}", e.value, e.lo, e.hi))
+            .collect::<Vec<_>>()
+            .join(",")
+    }
 }
 
 /// One run's tracking: under its own training randomisation, and under the common one.
@@ -143,7 +181,8 @@ impl ExperimentResults {
             .map(|(r, s)| {
                 let p = s.progress.clone().unwrap_or_default();
                 let found = tracking.iter().find(|t| t.label == r.label);
-                let t = found.map(|t| &t.own);
+                // one seed for both: the same robots give the same interval
+                let cell = format!("tracking/{}", r.label);
                 RunRow {
                     label: r.label.clone(),
                     config: r.config.display().to_string(),
@@ -157,17 +196,11 @@ impl ExperimentResults {
                         .terrain_levels
                         .as_ref()
                         .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
-                    lin_tracking: t.map_or(f64::NAN, |t| t.lin_vel_score),
-                    yaw_tracking: t.map_or(f64::NAN, |t| t.yaw_rate_score),
-                    fall_rate: t.map_or(f64::NAN, |t| t.fall_rate),
-                    tracking_episodes: t.map_or(0, |t| t.episodes),
-                    common_tracking: found.and_then(|t| t.common.as_ref()).map(|c| {
-                        CommonTracking {
-                            lin_tracking: c.lin_vel_score,
-                            yaw_tracking: c.yaw_rate_score,
-                            fall_rate: c.fall_rate,
-                        }
-                    }),
+                    tracking: found.map(|t| TrackingEstimates::new(&t.own, b, &cell)),
+                    tracking_episodes: found.map_or(0, |t| t.own.episodes),
+                    common_tracking: found
+                        .and_then(|t| t.common.as_ref())
+                        .map(|c| TrackingEstimates::new(c, b, &cell)),
                 }
             })
             .collect();
@@ -335,33 +368,23 @@ impl ExperimentResults {
             } else {
                 ""
             };
-            let tracked = |v: f64, pct: bool| match (r.tracking_episodes, pct) {
-                (0, _) => "-".to_string(),
-                (_, true) => format!("{:.1}%", 100.0 * v),
-                (_, false) => format!("{v:.3}"),
-            };
+            let [lin, yaw, falls] = r
+                .tracking
+                .map_or_else(|| ["-".to_string(), "-".into(), "-".into()], |t| t.cells());
             let on_common = match (common, &r.common_tracking) {
                 (None, _) => String::new(),
                 (Some(_), None) => " - |".into(),
-                (Some(_), Some(c)) => format!(
-                    " {:.3} / {:.3} / {:.1}% |",
-                    c.lin_tracking,
-                    c.yaw_tracking,
-                    100.0 * c.fall_rate
-                ),
+                (Some(_), Some(c)) => format!(" {} |", c.cells().join(" / ")),
             };
             let _ = writeln!(
                 s,
-                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {} | {} | {} |{on_common}",
+                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {lin} | {yaw} | {falls} |{on_common}",
                 r.label,
                 r.iterations_done,
                 r.iterations_target,
                 r.env_steps as f64 / 1e6,
                 r.wall_clock_h,
                 r.terrain_level.map_or("-".into(), |l| format!("{l:.2}")),
-                tracked(r.lin_tracking, false),
-                tracked(r.yaw_tracking, false),
-                tracked(r.fall_rate, true)
             );
         }
         let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground, each policy under its own training randomisation); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.",
@@ -539,17 +562,14 @@ impl ExperimentResults {
         let est =
             |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
-        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,yaw_tracking,fall_rate,common_lin_tracking,common_yaw_tracking,common_fall_rate\n");
+        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,lin_tracking_lo,lin_tracking_hi,yaw_tracking,yaw_tracking_lo,yaw_tracking_hi,fall_rate,fall_rate_lo,fall_rate_hi,common_lin_tracking,common_lin_tracking_lo,common_lin_tracking_hi,common_yaw_tracking,common_yaw_tracking_lo,common_yaw_tracking_hi,common_fall_rate,common_fall_rate_lo,common_fall_rate_hi\n");
+        let none = ",".repeat(8);
         for r in &self.runs {
-            let common = r.common_tracking.map_or(",,".into(), |c| {
-                format!(
-                    "{:.4},{:.4},{:.4}",
-                    c.lin_tracking, c.yaw_tracking, c.fall_rate
-                )
-            });
+            let own = r.tracking.map_or(none.clone(), |t| t.csv());
+            let common = r.common_tracking.map_or(none.clone(), |t| t.csv());
             let _ = writeln!(
                 runs,
-                "{},{},{},{},{},{},{:.4},{},{:.4},{:.4},{:.4},{common}",
+                "{},{},{},{},{},{},{:.4},{},{own},{common}",
                 csv_field(&r.label),
                 csv_field(&r.config),
                 r.seed,
@@ -558,9 +578,6 @@ impl ExperimentResults {
                 r.env_steps,
                 r.wall_clock_h,
                 opt(r.terrain_level),
-                r.lin_tracking,
-                r.yaw_tracking,
-                r.fall_rate
             );
         }
         let mut ttf = String::from("method,load,terrain,push,ttf,ttf_lo,ttf_hi,robots,paper\n");
