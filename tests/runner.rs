@@ -504,3 +504,70 @@ fn an_action_std_reset_applies_once_and_a_resumed_run_adds_it_identically() {
         "{err:#}"
     );
 }
+
+/// `rall eval tracking --run-dir`: one line and one CSV row per numbered
+/// checkpoint, oldest first, each figure inside its interval; the row of a
+/// checkpoint equals `--checkpoint` on that file.
+#[test]
+fn tracking_curve_over_a_runs_checkpoints() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut cfg = tiny_config(CriticKind::Scalar);
+    cfg.runner.iterations = 4;
+    cfg.runner.save_interval = 1;
+    train(cfg, &run, false, no_stop(), &mut ()).unwrap();
+    let rall = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_rall"))
+            .args(["eval", "tracking", "--episodes", "3", "--threads", "1"])
+            .args(args)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).to_string()
+            + &String::from_utf8_lossy(&out.stderr);
+        (out.status.success(), text)
+    };
+    let csv = dir.path().join("curve.csv");
+    let run_s = run.to_str().unwrap();
+    let (ok, log) = rall(&[
+        "--run-dir",
+        run_s,
+        "--every",
+        "2",
+        "--curve-csv",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(
+        rows.iter().map(|r| r[0]).collect::<Vec<_>>(),
+        [2.0, 4.0],
+        "{text}"
+    );
+    for r in &rows {
+        for k in [3, 6, 9] {
+            assert!(r[k + 1] <= r[k] && r[k] <= r[k + 2], "{r:?}");
+        }
+    }
+    let (ok, one) = rall(&[
+        "--checkpoint",
+        run.join("checkpoints/model_000004.safetensors")
+            .to_str()
+            .unwrap(),
+    ]);
+    assert!(ok, "{one}");
+    let lin = format!("{:.3}", rows[1][3]);
+    assert!(
+        one.contains(&format!("lin-vel tracking     {lin}")),
+        "{lin}: {one}"
+    );
+    // bad input: a directory without checkpoints, and both sources at once
+    let (ok, log) = rall(&["--run-dir", dir.path().to_str().unwrap()]);
+    assert!(!ok && log.contains("has no checkpoints"), "{log}");
+    let (ok, _) = rall(&["--run-dir", run_s, "--checkpoint", "x.safetensors"]);
+    assert!(!ok);
+}

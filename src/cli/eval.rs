@@ -1,6 +1,6 @@
 //! `rall eval ...`: evaluation commands.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
@@ -11,11 +11,11 @@ use crate::eval::{
     evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, fall_rate,
     lin_vel_score, tracking_env, with_randomization, yaw_rate_score, ActionMode, FallRecord,
     GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
-    RobotTracking, ScenarioParams, TtfOptions,
+    RobotTracking, ScenarioParams, TrackingReport, TtfOptions,
 };
-use crate::experiment::stats::bootstrap;
+use crate::experiment::stats::{bootstrap, Estimate};
 use crate::learn::{CriticKind, Distortion};
-use crate::runner::load_policy;
+use crate::runner::{load_policy, LoadedPolicy, RunDir};
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -165,8 +165,19 @@ pub struct RaceArgs {
 #[derive(Debug, Args)]
 pub struct TrackingArgs {
     /// Checkpoint (.safetensors) written by `rall train`.
-    #[arg(long)]
-    pub checkpoint: PathBuf,
+    #[arg(long, required_unless_present = "run_dir", conflicts_with = "run_dir")]
+    pub checkpoint: Option<PathBuf>,
+    /// A tracking curve instead: every numbered checkpoint of this run directory, oldest
+    /// first, one line each (and `--curve-csv`).
+    #[arg(long, value_name = "DIR")]
+    pub run_dir: Option<PathBuf>,
+    /// With --run-dir: only checkpoints whose iteration is a multiple of K.
+    #[arg(long, value_name = "K", default_value_t = 1, requires = "run_dir")]
+    pub every: usize,
+    /// With --run-dir: write the curve (iteration, env steps, wall clock, each figure
+    /// with its 95% interval) to this CSV file.
+    #[arg(long, value_name = "FILE", requires = "run_dir")]
+    pub curve_csv: Option<PathBuf>,
     /// Robots, one full episode each (run in parallel).
     #[arg(long, default_value_t = 64)]
     pub episodes: usize,
@@ -245,9 +256,21 @@ fn falls(a: &FallsArgs) -> Result<()> {
     Ok(())
 }
 
-fn tracking(a: &TrackingArgs) -> Result<()> {
+/// One checkpoint's tracking episodes under `a`'s settings, with 95% percentile
+/// bootstrap intervals over robots (as `rall experiment` reports them).
+struct Tracked {
+    policy: LoadedPolicy,
+    report: TrackingReport,
+    falls: Vec<FallRecord>,
+    mode: ActionMode,
+    lin: Estimate,
+    yaw: Estimate,
+    fell: Estimate,
+}
+
+fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
-    let policy = load_policy(&a.checkpoint)?;
+    let policy = load_policy(checkpoint)?;
     let mut env = tracking_env(&policy.config.env);
     if let Some(path) = &a.randomization_from {
         let from = TrainConfig::from_toml_file(path)
@@ -259,7 +282,7 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     } else {
         ActionMode::Mean
     };
-    let (r, falls) = evaluate_tracking_with_falls(
+    let (report, falls) = evaluate_tracking_with_falls(
         &policy.learner,
         &env,
         a.episodes,
@@ -267,9 +290,110 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
         a.seed,
         mode,
     )?;
+    let ci =
+        |stat: fn(&[RobotTracking]) -> f64| bootstrap(&report.robots, stat, 1000, 0.95, a.seed);
+    let (lin, yaw, fell) = (ci(lin_vel_score), ci(yaw_rate_score), ci(fall_rate));
+    Ok(Tracked {
+        policy,
+        report,
+        falls,
+        mode,
+        lin,
+        yaw,
+        fell,
+    })
+}
+
+fn tracking(a: &TrackingArgs) -> Result<()> {
+    match (&a.checkpoint, &a.run_dir) {
+        (Some(checkpoint), _) => tracking_one(a, checkpoint),
+        (None, Some(dir)) => tracking_curve(a, dir),
+        (None, None) => anyhow::bail!("give --checkpoint PATH or --run-dir DIR"),
+    }
+}
+
+/// Every numbered checkpoint of a run: a line each, and a CSV.
+fn tracking_curve(a: &TrackingArgs, dir: &Path) -> Result<()> {
+    anyhow::ensure!(a.every > 0, "--every must be at least 1");
+    let checkpoints: Vec<(usize, PathBuf)> = RunDir {
+        root: dir.to_path_buf(),
+    }
+    .checkpoints_by_iteration()
+    .into_iter()
+    .filter(|(it, _)| it % a.every == 0)
+    .collect();
+    anyhow::ensure!(
+        !checkpoints.is_empty(),
+        "{} has no checkpoints/model_<iteration>.safetensors{}",
+        dir.display(),
+        if a.every > 1 {
+            format!(" at a multiple of {} iterations", a.every)
+        } else {
+            String::new()
+        }
+    );
+    let mut csv = String::from("iteration,env_steps,wall_clock_min,lin_tracking,lin_tracking_lo,lin_tracking_hi,yaw_tracking,yaw_tracking_lo,yaw_tracking_hi,fall_rate,fall_rate_lo,fall_rate_hi\n");
+    println!(
+        "{} episodes each, seed {}; 95% bootstrap over robots; * = meets linear >= 0.8, yaw >= 0.7, falls < 5%",
+        a.episodes, a.seed
+    );
+    println!(
+        "{:>9} {:>10} {:>8}  {:<21} {:<21} {:<20}",
+        "iteration", "env steps", "minutes", "lin", "yaw", "falls %"
+    );
+    for (_, path) in &checkpoints {
+        let t = track_checkpoint(a, path)?;
+        let p = &t.policy.progress;
+        let meets = t.lin.value >= 0.8 && t.yaw.value >= 0.7 && t.fell.value < 0.05;
+        let pct = |e: &Estimate| {
+            format!(
+                "{:.1} [{:.1}, {:.1}]",
+                100.0 * e.value,
+                100.0 * e.lo,
+                100.0 * e.hi
+            )
+        };
+        println!(
+            "{:>9} {:>10} {:>8.1}  {:<21} {:<21} {:<20}{}",
+            p.iteration,
+            p.total_env_steps,
+            p.wall_s / 60.0,
+            t.lin.show(3),
+            t.yaw.show(3),
+            pct(&t.fell),
+            if meets { " *" } else { "" }
+        );
+        let est = |e: &Estimate| format!("{:.4},{:.4},{:.4}", e.value, e.lo, e.hi);
+        csv.push_str(&format!(
+            "{},{},{:.2},{},{},{}\n",
+            p.iteration,
+            p.total_env_steps,
+            p.wall_s / 60.0,
+            est(&t.lin),
+            est(&t.yaw),
+            est(&t.fell)
+        ));
+    }
+    if let Some(path) = &a.curve_csv {
+        std::fs::write(path, csv).with_context(|| format!("writing {}", path.display()))?;
+        println!("curve -> {}", path.display());
+    }
+    Ok(())
+}
+
+fn tracking_one(a: &TrackingArgs, checkpoint: &Path) -> Result<()> {
+    let Tracked {
+        policy,
+        report: r,
+        falls,
+        mode,
+        lin,
+        yaw,
+        fell,
+    } = track_checkpoint(a, checkpoint)?;
     println!(
         "checkpoint {} (iteration {}, {} env steps)",
-        a.checkpoint.display(),
+        checkpoint.display(),
         policy.progress.iteration,
         policy.progress.total_env_steps
     );
@@ -277,9 +401,6 @@ fn tracking(a: &TrackingArgs) -> Result<()> {
     if let Some(path) = &a.randomization_from {
         println!("randomisation        of {}", path.display());
     }
-    // 95% percentile bootstrap over robots (as `rall experiment` reports them)
-    let ci = |stat: fn(&[RobotTracking]) -> f64| bootstrap(&r.robots, stat, 1000, 0.95, a.seed);
-    let (lin, yaw, fell) = (ci(lin_vel_score), ci(yaw_rate_score), ci(fall_rate));
     println!(
         "lin-vel tracking     {}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect; 95% bootstrap over robots)",
         lin.show(3)

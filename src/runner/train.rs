@@ -65,6 +65,13 @@ impl RunDir {
 
     /// Numbered checkpoints, newest first.
     fn numbered_checkpoints(&self) -> Vec<PathBuf> {
+        let mut found = self.checkpoints_by_iteration();
+        found.reverse();
+        found.into_iter().map(|(_, p)| p).collect()
+    }
+
+    /// `checkpoints/model_<iteration>.safetensors`, oldest first, with their iterations.
+    pub fn checkpoints_by_iteration(&self) -> Vec<(usize, PathBuf)> {
         let mut found: Vec<(usize, PathBuf)> = std::fs::read_dir(self.root.join("checkpoints"))
             .into_iter()
             .flatten()
@@ -79,8 +86,8 @@ impl RunDir {
                 Some((it, e.path()))
             })
             .collect();
-        found.sort_by_key(|f| std::cmp::Reverse(f.0));
-        found.into_iter().map(|(_, p)| p).collect()
+        found.sort_by_key(|f| f.0);
+        found
     }
 
     /// The config of a run stopped before it wrote any checkpoint (nothing to
