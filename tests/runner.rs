@@ -27,6 +27,17 @@ fn trained_run(critic: CriticKind) -> (tempfile::TempDir, PathBuf) {
     (dir, run)
 }
 
+/// A scalar-critic run of `iterations`, a checkpoint every `save_interval`.
+fn scalar_run(iterations: usize, save_interval: usize) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut cfg = tiny_config(CriticKind::Scalar);
+    cfg.runner.iterations = iterations;
+    cfg.runner.save_interval = save_interval;
+    train(cfg, &run, false, no_stop(), &mut ()).unwrap();
+    (dir, run)
+}
+
 fn metric_rows(dir: &Path) -> Vec<Vec<String>> {
     let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
     text.lines()
@@ -310,11 +321,7 @@ fn fall_directions_follow_the_larger_tilt() {
 /// the metrics back to it, and removes the temp file.
 #[test]
 fn resume_after_a_crash_continues_from_the_newest_readable_checkpoint() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    let mut cfg = tiny_config(CriticKind::Scalar);
-    cfg.runner.iterations = 3;
-    train(cfg, &run, false, no_stop(), &mut ()).unwrap();
+    let (dir, run) = scalar_run(3, tiny_config(CriticKind::Scalar).runner.save_interval);
     // simulate the crash: checkpoint 3 and latest lost, a cut row, a temp file
     std::fs::remove_file(run.join("checkpoints/model_000003.safetensors")).unwrap();
     std::fs::write(run.join(LATEST), b"garbage").unwrap();
@@ -510,12 +517,7 @@ fn an_action_std_reset_applies_once_and_a_resumed_run_adds_it_identically() {
 /// checkpoint equals `--checkpoint` on that file.
 #[test]
 fn tracking_curve_over_a_runs_checkpoints() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    let mut cfg = tiny_config(CriticKind::Scalar);
-    cfg.runner.iterations = 4;
-    cfg.runner.save_interval = 1;
-    train(cfg, &run, false, no_stop(), &mut ()).unwrap();
+    let (dir, run) = scalar_run(4, 1);
     let rall = |args: &[&str]| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_rall"))
             .args(["eval", "tracking", "--episodes", "3", "--threads", "1"])
