@@ -321,7 +321,7 @@ fn fall_directions_follow_the_larger_tilt() {
 /// the metrics back to it, and removes the temp file.
 #[test]
 fn resume_after_a_crash_continues_from_the_newest_readable_checkpoint() {
-    let (dir, run) = scalar_run(3, tiny_config(CriticKind::Scalar).runner.save_interval);
+    let (_dir, run) = scalar_run(3, tiny_config(CriticKind::Scalar).runner.save_interval);
     // simulate the crash: checkpoint 3 and latest lost, a cut row, a temp file
     std::fs::remove_file(run.join("checkpoints/model_000003.safetensors")).unwrap();
     std::fs::write(run.join(LATEST), b"garbage").unwrap();
