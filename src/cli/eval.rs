@@ -8,12 +8,11 @@ use clap::{Args, Subcommand};
 use crate::config::{worker_threads, TrainConfig};
 use crate::eval::report::write_outputs;
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, fall_rate,
-    lin_vel_score, tracking_env, with_randomization, yaw_rate_score, ActionMode, FallRecord,
-    GroundKind, Load, MetaArg, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions,
-    RobotTracking, ScenarioParams, TrackingReport, TtfOptions,
+    evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
+    with_randomization, ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy,
+    PlatformOptions, RaceOptions, ScenarioParams, TrackingReport, TtfOptions,
 };
-use crate::experiment::stats::{bootstrap, Estimate};
+use crate::experiment::TrackingEstimates;
 use crate::learn::{CriticKind, Distortion};
 use crate::runner::{load_policy, LoadedPolicy, RunDir};
 
@@ -263,9 +262,7 @@ struct Tracked {
     report: TrackingReport,
     falls: Vec<FallRecord>,
     mode: ActionMode,
-    lin: Estimate,
-    yaw: Estimate,
-    fell: Estimate,
+    estimates: TrackingEstimates,
 }
 
 fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
@@ -290,17 +287,13 @@ fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
         a.seed,
         mode,
     )?;
-    let ci =
-        |stat: fn(&[RobotTracking]) -> f64| bootstrap(&report.robots, stat, 1000, 0.95, a.seed);
-    let (lin, yaw, fell) = (ci(lin_vel_score), ci(yaw_rate_score), ci(fall_rate));
+    let estimates = TrackingEstimates::new(&report, 1000, 0.95, |_| a.seed);
     Ok(Tracked {
         policy,
         report,
         falls,
         mode,
-        lin,
-        yaw,
-        fell,
+        estimates,
     })
 }
 
@@ -342,36 +335,26 @@ fn tracking_curve(a: &TrackingArgs, dir: &Path) -> Result<()> {
         "iteration", "env steps", "minutes", "lin", "yaw", "falls %"
     );
     for (_, path) in &checkpoints {
-        let t = track_checkpoint(a, path)?;
-        let p = &t.policy.progress;
-        let meets = t.lin.value >= 0.8 && t.yaw.value >= 0.7 && t.fell.value < 0.05;
-        let pct = |e: &Estimate| {
-            format!(
-                "{:.1} [{:.1}, {:.1}]",
-                100.0 * e.value,
-                100.0 * e.lo,
-                100.0 * e.hi
-            )
-        };
+        let Tracked {
+            policy, estimates, ..
+        } = track_checkpoint(a, path)?;
+        let p = &policy.progress;
         println!(
             "{:>9} {:>10} {:>8.1}  {:<21} {:<21} {:<20}{}",
             p.iteration,
             p.total_env_steps,
             p.wall_s / 60.0,
-            t.lin.show(3),
-            t.yaw.show(3),
-            pct(&t.fell),
-            if meets { " *" } else { "" }
+            estimates.lin.show(3),
+            estimates.yaw.show(3),
+            estimates.falls.percent().show(1),
+            if estimates.meets_targets() { " *" } else { "" }
         );
-        let est = |e: &Estimate| format!("{:.4},{:.4},{:.4}", e.value, e.lo, e.hi);
         csv.push_str(&format!(
-            "{},{},{:.2},{},{},{}\n",
+            "{},{},{:.2},{}\n",
             p.iteration,
             p.total_env_steps,
             p.wall_s / 60.0,
-            est(&t.lin),
-            est(&t.yaw),
-            est(&t.fell)
+            estimates.csv()
         ));
     }
     if let Some(path) = &a.curve_csv {
@@ -387,9 +370,7 @@ fn tracking_one(a: &TrackingArgs, checkpoint: &Path) -> Result<()> {
         report: r,
         falls,
         mode,
-        lin,
-        yaw,
-        fell,
+        estimates,
     } = track_checkpoint(a, checkpoint)?;
     println!(
         "checkpoint {} (iteration {}, {} env steps)",
@@ -403,14 +384,12 @@ fn tracking_one(a: &TrackingArgs, checkpoint: &Path) -> Result<()> {
     }
     println!(
         "lin-vel tracking     {}   (mean exp(-|v_cmd - v|^2 / sigma), 1 = perfect; 95% bootstrap over robots)",
-        lin.show(3)
+        estimates.lin.show(3)
     );
-    println!("yaw-rate tracking    {}", yaw.show(3));
+    println!("yaw-rate tracking    {}", estimates.yaw.show(3));
     println!(
-        "fall rate            {:.1}% [{:.1}, {:.1}]   (trunk contact {}, tilt {}, physics failure {})",
-        100.0 * fell.value,
-        100.0 * fell.lo,
-        100.0 * fell.hi,
+        "fall rate            {}   (trunk contact {}, tilt {}, physics failure {})",
+        estimates.falls.show_percent(),
         r.trunk_contacts,
         r.tilts,
         r.unstable

@@ -369,11 +369,6 @@ mod tests {
         rest.randomization = tracking_env(&own).randomization;
         assert_eq!(rest, tracking_env(&own));
     }
-}
-
-#[cfg(test)]
-mod robot_tests {
-    use super::*;
 
     #[test]
     fn scores_pool_robot_steps_and_falls_count_robots() {

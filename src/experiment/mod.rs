@@ -25,7 +25,7 @@ use crate::eval::{
     RaceOptions, ScenarioParams, TtfOptions,
 };
 use crate::runner::{train, Progress, RunDir, LATEST};
-pub use results::{ExperimentResults, RunTracking};
+pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use spec::ExperimentSpec;
 use spec::MetaSpec;
 
@@ -73,15 +73,10 @@ pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     let progress = match newest_checkpoint(spec, r)? {
         Some(path) => {
             let loaded = crate::runner::load_policy(&path)?;
-            let mut stored = loaded.config.clone();
-            // a last stage added after the run was started, not yet reached: training adds it
-            stored
-                .runner
-                .add_action_std_reset(cfg.runner.action_std_reset, loaded.progress.iteration)
-                .with_context(|| format!("run {:?} ({})", r.label, path.display()))?;
-            crate::runner::train::check_phase_one_budget(
-                &stored,
-                r.iterations,
+            // what a resume would train: the stored config with this budget and last stage
+            let stored = crate::runner::train::keep_runner_settings(
+                loaded.config.clone(),
+                &cfg,
                 loaded.progress.iteration,
             )
             .with_context(|| format!("run {:?} ({})", r.label, path.display()))?;
@@ -414,9 +409,10 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
                 ActionMode::Mean,
             )
         };
-        let own = track(&tracking_env(&p.env))?;
+        let env = tracking_env(&p.env);
+        let own = track(&env)?;
         let on_common = match &common {
-            Some(c) => Some(track(&with_randomization(tracking_env(&p.env), c))?),
+            Some(c) => Some(track(&with_randomization(env, c))?),
             None => None,
         };
         tracking.push(RunTracking {

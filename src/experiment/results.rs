@@ -47,11 +47,16 @@ pub struct TrackingEstimates {
 }
 
 impl TrackingEstimates {
-    /// `cell` names the bootstrap's seed (see [`cell_seed`]).
-    fn new(t: &TrackingReport, b: &crate::experiment::spec::BootstrapSpec, cell: &str) -> Self {
+    /// Percentile bootstrap over `t`'s robots; `seed_of("lin" | "yaw" | "falls")` seeds
+    /// each figure's resampling.
+    pub fn new(
+        t: &TrackingReport,
+        resamples: usize,
+        level: f64,
+        seed_of: impl Fn(&str) -> u64,
+    ) -> Self {
         let ci = |what: &str, stat: fn(&[RobotTracking]) -> f64| {
-            let seed = cell_seed(b.seed, &format!("{cell}/{what}"));
-            bootstrap(&t.robots, stat, b.resamples, b.level, seed)
+            bootstrap(&t.robots, stat, resamples, level, seed_of(what))
         };
         TrackingEstimates {
             lin: ci("lin", lin_vel_score),
@@ -60,25 +65,23 @@ impl TrackingEstimates {
         }
     }
 
-    /// `lin / yaw / falls` with their intervals.
-    fn cells(&self) -> [String; 3] {
-        let pct = |e: &Estimate| {
-            format!(
-                "{:.1}% [{:.1}, {:.1}]",
-                100.0 * e.value,
-                100.0 * e.lo,
-                100.0 * e.hi
-            )
-        };
-        [self.lin.show(3), self.yaw.show(3), pct(&self.falls)]
+    /// The targets: linear >= 0.8, yaw >= 0.7, falls < 5%.
+    pub fn meets_targets(&self) -> bool {
+        self.lin.value >= 0.8 && self.yaw.value >= 0.7 && self.falls.value < 0.05
     }
 
-    fn csv(&self) -> String {
-        [self.lin, self.yaw, self.falls]
-            .iter()
-            .map(|e| format!("{:.4},{:.4},{:.4}", e.value, e.lo, e.hi))
-            .collect::<Vec<_>>()
-            .join(",")
+    /// `lin / yaw / falls` with their intervals.
+    fn cells(&self) -> [String; 3] {
+        [
+            self.lin.show(3),
+            self.yaw.show(3),
+            self.falls.show_percent(),
+        ]
+    }
+
+    /// Nine CSV fields: each figure, its low and high end.
+    pub fn csv(&self) -> String {
+        [self.lin, self.yaw, self.falls].map(|e| e.csv(4)).join(",")
     }
 }
 
@@ -183,6 +186,11 @@ impl ExperimentResults {
                 let found = tracking.iter().find(|t| t.label == r.label);
                 // one seed for both: the same robots give the same interval
                 let cell = format!("tracking/{}", r.label);
+                let estimates = |t: &TrackingReport| {
+                    TrackingEstimates::new(t, b.resamples, b.level, |what| {
+                        cell_seed(b.seed, &format!("{cell}/{what}"))
+                    })
+                };
                 RunRow {
                     label: r.label.clone(),
                     config: r.config.display().to_string(),
@@ -196,11 +204,9 @@ impl ExperimentResults {
                         .terrain_levels
                         .as_ref()
                         .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
-                    tracking: found.map(|t| TrackingEstimates::new(&t.own, b, &cell)),
+                    tracking: found.map(|t| estimates(&t.own)),
                     tracking_episodes: found.map_or(0, |t| t.own.episodes),
-                    common_tracking: found
-                        .and_then(|t| t.common.as_ref())
-                        .map(|c| TrackingEstimates::new(c, b, &cell)),
+                    common_tracking: found.and_then(|t| t.common.as_ref()).map(estimates),
                 }
             })
             .collect();
@@ -559,8 +565,6 @@ impl ExperimentResults {
     }
 
     fn csv_files(&self) -> Vec<(&'static str, String)> {
-        let est =
-            |e: &Estimate, d: usize| format!("{:.d$},{:.d$},{:.d$}", e.value, e.lo, e.hi, d = d);
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
         let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,lin_tracking_lo,lin_tracking_hi,yaw_tracking,yaw_tracking_lo,yaw_tracking_hi,fall_rate,fall_rate_lo,fall_rate_hi,common_lin_tracking,common_lin_tracking_lo,common_lin_tracking_hi,common_yaw_tracking,common_yaw_tracking_lo,common_yaw_tracking_hi,common_fall_rate,common_fall_rate_lo,common_fall_rate_hi\n");
         let none = ",".repeat(8);
@@ -589,7 +593,7 @@ impl ExperimentResults {
                 r.load,
                 r.terrain,
                 r.push,
-                est(&r.ttf, 4),
+                r.ttf.csv(4),
                 r.robots,
                 opt(r.paper)
             );
@@ -602,7 +606,7 @@ impl ExperimentResults {
                 "{},{},{},{},{}",
                 csv_field(&r.method),
                 r.height_m,
-                est(&r.success_pct, 2),
+                r.success_pct.csv(2),
                 r.robots,
                 opt(r.paper)
             );
@@ -613,9 +617,9 @@ impl ExperimentResults {
                 race,
                 "{},{},{},{},{:.4},{:.4},{}",
                 csv_field(&r.method),
-                est(&r.q25, 4),
-                est(&r.q50, 4),
-                est(&r.q75, 4),
+                r.q25.csv(4),
+                r.q50.csv(4),
+                r.q75.csv(4),
                 r.mean_return,
                 r.fall_fraction,
                 r.episodes
@@ -639,7 +643,7 @@ impl ExperimentResults {
                 r.load,
                 r.terrain,
                 r.push,
-                est(&r.ttf, 4),
+                r.ttf.csv(4),
                 per_seed(&r.per_seed, 4),
                 r.robots
             );
@@ -654,7 +658,7 @@ impl ExperimentResults {
                 csv_field(&r.method.label),
                 seeds(&r.method),
                 r.height_m,
-                est(&r.success_pct, 2),
+                r.success_pct.csv(2),
                 per_seed(&r.per_seed, 2),
                 r.robots
             );
@@ -667,9 +671,9 @@ impl ExperimentResults {
                 "{},{},{},{},{},{},{},{},{:.4},{}",
                 csv_field(&r.method.label),
                 seeds(&r.method),
-                est(&r.q25, 4),
-                est(&r.q50, 4),
-                est(&r.q75, 4),
+                r.q25.csv(4),
+                r.q50.csv(4),
+                r.q75.csv(4),
                 col(0),
                 col(1),
                 col(2),

@@ -17,6 +17,32 @@ pub struct Estimate {
 }
 
 impl Estimate {
+    /// `value,lo,hi` with `digits` decimals (three CSV fields).
+    pub fn csv(&self, digits: usize) -> String {
+        format!(
+            "{:.d$},{:.d$},{:.d$}",
+            self.value,
+            self.lo,
+            self.hi,
+            d = digits
+        )
+    }
+
+    /// The same estimate in percent (a fraction times 100).
+    pub fn percent(&self) -> Estimate {
+        Estimate {
+            value: 100.0 * self.value,
+            lo: 100.0 * self.lo,
+            hi: 100.0 * self.hi,
+        }
+    }
+
+    /// A fraction as `4.7% [1.6, 9.4]`.
+    pub fn show_percent(&self) -> String {
+        let p = self.percent();
+        format!("{:.1}% [{:.1}, {:.1}]", p.value, p.lo, p.hi)
+    }
+
     /// `0.512 [0.45, 0.57]` with `digits` decimals.
     pub fn show(&self, digits: usize) -> String {
         format!(

@@ -637,7 +637,8 @@ fn fresh_start(cfg: &TrainConfig) -> Result<(Learner, Progress)> {
 /// A stored run config with this invocation's runner settings, the ones that
 /// do not change what is learned (they may differ on resume), and this
 /// invocation's last stage if the run had none and is at most at its iteration.
-fn keep_runner_settings(
+/// Refuses what a resume cannot do (see [`check_phase_one_budget`]).
+pub fn keep_runner_settings(
     mut stored: TrainConfig,
     now: &TrainConfig,
     iteration: usize,
@@ -657,7 +658,7 @@ fn keep_runner_settings(
 /// RMA's phase 1 (PPO) cannot go on once phase 2 has started: the checkpoint
 /// then holds the student, not the teacher. A run past its phase-1 end may not
 /// be given another phase-1 budget.
-pub fn check_phase_one_budget(
+fn check_phase_one_budget(
     stored: &TrainConfig,
     new_iterations: usize,
     iteration: usize,
