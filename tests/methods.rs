@@ -9,13 +9,20 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use rall::config::TrainConfig;
-use rall::env::privileged::PRIVILEGED_DIM;
+use rall::env::privileged::{EXTRINSICS_DIM, PRIVILEGED_DIM};
 use rall::env::terrain::TerrainKind;
 use rall::env::{build_scene, Env, EnvConfig, ObsGroup, OBS_DIM};
 use rall::learn::{load_checkpoint, save_checkpoint, LatentSource, Learner};
 use rall::runner::{load_policy, save_policy, train, Progress};
 
-const METHODS: [&str; 5] = ["baseline", "dr", "rma", "rall", "rall-eta1"];
+const METHODS: [&str; 6] = [
+    "baseline",
+    "dr",
+    "rma",
+    "rma-extrinsics",
+    "rall",
+    "rall-eta1",
+];
 
 fn repo(p: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -119,6 +126,44 @@ fn the_privileged_group_holds_exactly_the_parameters_of_the_episode() {
     assert!(
         draws.windows(2).all(|w| w[0] != w[1]),
         "every episode draws anew"
+    );
+}
+
+/// RMA's e_t: the `extrinsics` group repeats the privileged group's episode
+/// factors and stays constant through the episode, while the privileged state
+/// fields (true velocity, ground under the feet) move with the robot.
+#[test]
+fn the_extrinsics_group_is_the_episode_factors_and_constant_over_an_episode() {
+    let mut cfg = dr_env_config();
+    cfg.observation.groups = vec![ObsGroup::Policy, ObsGroup::Privileged, ObsGroup::Extrinsics];
+    let mut env = env_of(&cfg, 11);
+    let w = cfg.obs_width();
+    assert_eq!(w, OBS_DIM + PRIVILEGED_DIM + EXTRINSICS_DIM);
+    let privileged = OBS_DIM..OBS_DIM + PRIVILEGED_DIM;
+    let extrinsics = privileged.end..w;
+    let (mut obs, mut fin) = (vec![0.0; w], vec![0.0; w]);
+    env.reset(&mut obs).unwrap();
+    let first = obs.clone();
+    assert_eq!(
+        &first[extrinsics.clone()],
+        &first[privileged.start..privileged.start + EXTRINSICS_DIM]
+    );
+    assert!(first[extrinsics.clone()].iter().any(|&v| v != 0.0));
+    let action = vec![0.3f32; 12];
+    for _ in 0..10 {
+        assert!(!env.step(&action, &mut obs, &mut fin).done);
+        assert_eq!(&obs[extrinsics.clone()], &first[extrinsics.clone()]);
+    }
+    assert_ne!(
+        &obs[privileged.start + EXTRINSICS_DIM..privileged.end],
+        &first[privileged.start + EXTRINSICS_DIM..privileged.end],
+        "the privileged state fields move"
+    );
+    env.reset(&mut obs).unwrap();
+    assert_ne!(
+        &obs[extrinsics.clone()],
+        &first[extrinsics],
+        "a new episode draws anew"
     );
 }
 

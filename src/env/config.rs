@@ -29,7 +29,8 @@ pub struct ObservationConfig {
     pub noise_level: f64,
     /// Observations are clipped to +-clip after scaling.
     pub clip: f64,
-    /// The groups the env writes into each observation row, in order.
+    /// The groups the env writes into each observation row, in order:
+    /// "policy", "privileged", "extrinsics", "history" (`ObsGroup`).
     pub groups: Vec<super::observation::ObsGroup>,
     /// Policy observations kept in the `history` group (RMA: 50).
     pub history_steps: usize,

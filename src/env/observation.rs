@@ -96,6 +96,10 @@ pub enum ObsGroup {
     /// What a teacher may know: this episode's randomised parameters, the push
     /// in effect, the true base velocity and the ground under the feet.
     Privileged,
+    /// RMA's environment factors e_t alone: the episode's friction, added mass,
+    /// centre of mass, motor strengths and PD factors (the first 19 values of
+    /// `privileged`), constant over an episode.
+    Extrinsics,
     /// The last `history_steps` policy observations, newest first (each holds
     /// the action before it), zeros before the episode's first step.
     History,
@@ -106,6 +110,7 @@ impl ObsGroup {
         match self {
             ObsGroup::Policy => "policy",
             ObsGroup::Privileged => "privileged",
+            ObsGroup::Extrinsics => "extrinsics",
             ObsGroup::History => "history",
         }
     }
@@ -115,6 +120,7 @@ impl ObsGroup {
         match self {
             ObsGroup::Policy => OBS_DIM,
             ObsGroup::Privileged => super::privileged::PRIVILEGED_DIM,
+            ObsGroup::Extrinsics => super::privileged::EXTRINSICS_DIM,
             ObsGroup::History => history_steps * OBS_DIM,
         }
     }
@@ -124,6 +130,7 @@ impl ObsGroup {
         match self {
             ObsGroup::Policy => layout_string(),
             ObsGroup::Privileged => super::privileged::layout_string(),
+            ObsGroup::Extrinsics => super::privileged::extrinsics_layout_string(),
             ObsGroup::History => format!("{history_steps}x[policy, newest first]"),
         }
     }

@@ -1,6 +1,8 @@
 //! The `privileged` observation group: what a teacher policy may know and the
 //! robot cannot measure (RMA's environment factors e_t, plus the push in effect,
-//! the true base velocity and the ground under the feet).
+//! the true base velocity and the ground under the feet), and the `extrinsics`
+//! group: its first fields alone, the episode's randomised factors (RMA's e_t,
+//! constant over an episode).
 
 use super::single::EpisodeDraw;
 use crate::robot::NUM_JOINTS;
@@ -21,19 +23,40 @@ pub const PRIVILEGED_FIELDS: [(&str, usize, f64, f64); 10] = [
 ];
 
 /// Values in the group.
-pub const PRIVILEGED_DIM: usize = {
+pub const PRIVILEGED_DIM: usize = width_of(PRIVILEGED_FIELDS.len());
+
+/// The `extrinsics` group's fields: the leading [`PRIVILEGED_FIELDS`] up to and
+/// including the PD factors (friction, added mass, centre of mass, motor
+/// strength, kp, kd: 19 values, the 19-d e_t of RMA's published code), which
+/// stay constant over an episode. Not the push, the base velocity or the ground
+/// under the feet: those are the robot's state, not its environment.
+pub const EXTRINSIC_FIELDS: usize = 6;
+
+/// Values in the `extrinsics` group (a prefix of the `privileged` group's).
+pub const EXTRINSICS_DIM: usize = width_of(EXTRINSIC_FIELDS);
+
+const fn width_of(fields: usize) -> usize {
     let mut n = 0;
     let mut i = 0;
-    while i < PRIVILEGED_FIELDS.len() {
+    while i < fields {
         n += PRIVILEGED_FIELDS[i].1;
         i += 1;
     }
     n
-};
+}
 
 /// `name:width*scale@offset,...`, stored in checkpoints.
 pub fn layout_string() -> String {
-    PRIVILEGED_FIELDS
+    fields_string(&PRIVILEGED_FIELDS)
+}
+
+/// [`layout_string`] of the `extrinsics` group.
+pub fn extrinsics_layout_string() -> String {
+    fields_string(&PRIVILEGED_FIELDS[..EXTRINSIC_FIELDS])
+}
+
+fn fields_string(fields: &[(&str, usize, f64, f64)]) -> String {
+    fields
         .iter()
         .map(|(n, w, o, s)| format!("{n}:{w}*{s}@{o}"))
         .collect::<Vec<_>>()
@@ -77,15 +100,56 @@ impl PrivilegedState {
         v
     }
 
-    /// Writes the scaled group into `out` (length [`PRIVILEGED_DIM`]).
+    /// Writes the scaled group into `out` (length [`PRIVILEGED_DIM`]), or its
+    /// first [`EXTRINSICS_DIM`] values when `out` is that long (the `extrinsics`
+    /// group).
     pub fn write(&self, out: &mut [f32]) {
+        assert!(out.len() == PRIVILEGED_DIM || out.len() == EXTRINSICS_DIM);
         let v = self.values();
         let mut i = 0;
         for (_, width, offset, scale) in PRIVILEGED_FIELDS {
             for _ in 0..width {
+                if i == out.len() {
+                    return;
+                }
                 out[i] = ((v[i] - offset) * scale) as f32;
                 i += 1;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn extrinsics_are_the_episode_factors_leading_the_privileged_group() {
+        assert_eq!(EXTRINSICS_DIM, 19);
+        assert_eq!(PRIVILEGED_FIELDS[EXTRINSIC_FIELDS].0, "push_force_world_n");
+        let state = PrivilegedState {
+            draw: EpisodeDraw {
+                friction: Some(1.3),
+                added_base_mass_kg: 0.7,
+                motor_strength: [0.95; NUM_JOINTS],
+                kp_factor: 1.05,
+                kd_factor: 0.92,
+                com_offset_m: [0.01, -0.02, 0.03],
+            },
+            push_force_world_n: [50.0, -20.0, 0.0],
+            push_kick_world_mps: [0.3, 0.1],
+            base_lin_vel_body_mps: [0.5, 0.0, -0.1],
+            ground_under_feet_minus_base_z_m: [-0.38; 4],
+        };
+        let mut full = [0.0f32; PRIVILEGED_DIM];
+        let mut ext = [0.0f32; EXTRINSICS_DIM];
+        state.write(&mut full);
+        state.write(&mut ext);
+        assert_eq!(ext[..], full[..EXTRINSICS_DIM]);
+        // friction (1.3 - 1) * 1, added mass 0.7 * 0.2, then the centre of mass
+        assert!((ext[0] - 0.3).abs() < 1e-6 && (ext[1] - 0.14).abs() < 1e-6);
+        assert!((ext[18] - (0.92 - 1.0) * 2.0).abs() < 1e-6);
+        assert!(extrinsics_layout_string().ends_with("kd_factor:1*2@1"));
+        assert!(layout_string().starts_with(&extrinsics_layout_string()));
     }
 }
