@@ -100,21 +100,27 @@ impl PrivilegedState {
         v
     }
 
-    /// Writes the scaled group into `out` (length [`PRIVILEGED_DIM`]), or its
-    /// first [`EXTRINSICS_DIM`] values when `out` is that long (the `extrinsics`
-    /// group).
+    /// Writes the scaled `privileged` group into `out` (length [`PRIVILEGED_DIM`]).
     pub fn write(&self, out: &mut [f32]) {
-        assert!(out.len() == PRIVILEGED_DIM || out.len() == EXTRINSICS_DIM);
+        self.write_leading_fields(PRIVILEGED_FIELDS.len(), out);
+    }
+
+    /// Writes the scaled `extrinsics` group, the first [`EXTRINSIC_FIELDS`] of the
+    /// `privileged` group, into `out` (length [`EXTRINSICS_DIM`]).
+    pub fn write_extrinsics(&self, out: &mut [f32]) {
+        self.write_leading_fields(EXTRINSIC_FIELDS, out);
+    }
+
+    /// `(v - offset) * scale` for each value of the leading `fields` fields.
+    fn write_leading_fields(&self, fields: usize, out: &mut [f32]) {
+        assert_eq!(out.len(), width_of(fields), "group width");
         let v = self.values();
-        let mut i = 0;
-        for (_, width, offset, scale) in PRIVILEGED_FIELDS {
-            for _ in 0..width {
-                if i == out.len() {
-                    return;
-                }
-                out[i] = ((v[i] - offset) * scale) as f32;
-                i += 1;
+        let mut at = 0;
+        for &(_, width, offset, scale) in &PRIVILEGED_FIELDS[..fields] {
+            for (o, x) in out[at..at + width].iter_mut().zip(&v[at..at + width]) {
+                *o = ((x - offset) * scale) as f32;
             }
+            at += width;
         }
     }
 }
@@ -144,7 +150,7 @@ mod tests {
         let mut full = [0.0f32; PRIVILEGED_DIM];
         let mut ext = [0.0f32; EXTRINSICS_DIM];
         state.write(&mut full);
-        state.write(&mut ext);
+        state.write_extrinsics(&mut ext);
         assert_eq!(ext[..], full[..EXTRINSICS_DIM]);
         // friction (1.3 - 1) * 1, added mass 0.7 * 0.2, then the centre of mass
         assert!((ext[0] - 0.3).abs() < 1e-6 && (ext[1] - 0.14).abs() < 1e-6);

@@ -738,7 +738,8 @@ impl Env {
             let dst = &mut out[at..at + w];
             match g {
                 ObsGroup::Policy => dst.copy_from_slice(&self.policy_obs),
-                ObsGroup::Privileged | ObsGroup::Extrinsics => self.privileged_state().write(dst),
+                ObsGroup::Privileged => self.privileged_state().write(dst),
+                ObsGroup::Extrinsics => self.privileged_state().write_extrinsics(dst),
                 ObsGroup::History => dst.copy_from_slice(&self.history),
             }
             at += w;
