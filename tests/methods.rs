@@ -15,11 +15,12 @@ use rall::env::{build_scene, Env, EnvConfig, ObsGroup, OBS_DIM};
 use rall::learn::{load_checkpoint, save_checkpoint, LatentSource, Learner};
 use rall::runner::{load_policy, save_policy, train, Progress};
 
-const METHODS: [&str; 6] = [
+const METHODS: [&str; 7] = [
     "baseline",
     "dr",
     "rma",
     "rma-extrinsics",
+    "rma-critic-policy",
     "rall",
     "rall-eta1",
 ];
