@@ -20,7 +20,7 @@ const METHODS: [&str; 7] = [
     "dr",
     "rma",
     "rma-extrinsics",
-    "rma-critic-policy",
+    "rma-critic-privileged",
     "rall",
     "rall-eta1",
 ];
