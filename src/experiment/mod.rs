@@ -163,6 +163,21 @@ fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
     std::fs::rename(&tmp, to).with_context(|| format!("writing {}", to.display()))
 }
 
+/// Copies the files that travel with a checkpoint from run directory `run` to its
+/// shipped copy `dst`, and removes those the run does not have: a run trained anew
+/// under an old run's name must not ship the old run's `adaptation.csv`.
+fn ship_files(run: &Path, dst: &Path) -> Result<()> {
+    for f in SHIPPED_FILES {
+        if run.join(f).exists() {
+            copy_atomic(&run.join(f), &dst.join(f))?;
+        } else if dst.join(f).exists() {
+            std::fs::remove_file(dst.join(f))
+                .with_context(|| format!("removing the stale {}", dst.join(f).display()))?;
+        }
+    }
+    Ok(())
+}
+
 /// A run absent from `runs_dir` starts from its shipped checkpoint, if any.
 /// Returns whether it was restored.
 pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool> {
@@ -202,11 +217,7 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         let dst = ship.join(spec.run_dir_name(r));
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
         copy_atomic(&ckpt, &dst.join(LATEST))?;
-        for f in SHIPPED_FILES {
-            if rd.root.join(f).exists() {
-                copy_atomic(&rd.root.join(f), &dst.join(f))?;
-            }
-        }
+        ship_files(&rd.root, &dst)?;
         let p = &loaded.progress;
         let text = format!(
             "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
@@ -570,4 +581,30 @@ pub fn run_experiment(
         eprintln!("results in {}", spec.results_dir.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipping_removes_files_the_run_no_longer_has() {
+        let dir = tempfile::tempdir().unwrap();
+        let (run, dst) = (dir.path().join("run"), dir.path().join("shipped"));
+        std::fs::create_dir_all(&run).unwrap();
+        std::fs::create_dir_all(&dst).unwrap();
+        // the shipped copy of an older run of the same name, with a phase-2 log
+        for f in SHIPPED_FILES {
+            std::fs::write(dst.join(f), "old").unwrap();
+        }
+        // the new run has not reached phase 2
+        std::fs::write(run.join("config.toml"), "new config").unwrap();
+        std::fs::write(run.join("metrics.csv"), "new metrics").unwrap();
+        ship_files(&run, &dst).unwrap();
+        let read = |f: &str| std::fs::read_to_string(dst.join(f)).unwrap();
+        assert_eq!(read("config.toml"), "new config");
+        assert_eq!(read("metrics.csv"), "new metrics");
+        assert!(!dst.join("adaptation.csv").exists());
+        assert!(!dst.join("adaptation.copy.tmp").exists());
+    }
 }
