@@ -25,6 +25,13 @@ fn spec_text(dir: &Path, results: &str) -> String {
     let base = write_config(dir, "baseline", CriticKind::Scalar, None);
     let eta1 = write_config(dir, "eta1", CriticKind::Iqn, Some(1.0));
     let rall = write_config(dir, "rall", CriticKind::Iqn, Some(0.5));
+    // a second common ground: wider randomisation than any run trained under
+    let mut w = common::tiny_config(CriticKind::Scalar);
+    w.env.randomization.friction = Some([0.2, 2.5]);
+    w.env.randomization.motor_strength = Some([0.8, 1.2]);
+    let wide = dir.join("wide.toml");
+    std::fs::write(&wide, w.to_toml()).unwrap();
+    let wide = wide.display();
     format!(
         r#"
 name = "slice"
@@ -64,7 +71,7 @@ iterations = 2
 [tracking]
 episodes = 4
 seed = 7
-randomization_from = "{base}"
+randomization_from = ["{base}", "{wide}"]
 
 [ttf]
 methods = ["Baseline", "RALL", "RALL seed 2"]
@@ -176,24 +183,37 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "{md}"
     );
     assert!(md.contains("Meta"), "{md}");
-    // every run also tracked under the common randomisation, here its own: the same
-    // episodes to the digit (the override changes the draws' ranges, nothing else)
-    assert!(md.contains("randomisation: lin / yaw / falls"), "{md}");
+    // every run also tracked under each common randomisation; the first is its own:
+    // the same episodes to the digit (the override changes the draws' ranges, nothing
+    // else); the second (wider) gives other episodes
+    assert!(md.contains("Tracking on common ground"), "{md}");
+    assert!(md.contains("wide.toml`'s |"), "{md}");
     let runs = std::fs::read_to_string(dir.path().join("results-a/runs.csv")).unwrap();
+    let header = runs.lines().next().unwrap();
+    assert!(
+        header.contains(",on_baseline_lin_tracking,") && header.contains(",on_wide_fall_rate_hi"),
+        "{header}"
+    );
+    let mut differs = false;
     for line in runs.lines().skip(1) {
         let v: Vec<&str> = line.split(',').collect();
-        assert_eq!(v.len(), 26, "{line}");
+        assert_eq!(v.len(), 35, "{line}");
         assert_eq!(
             v[8..17],
             v[17..26],
             "own and common tracking differ: {line}"
         );
+        differs |= v[8..17] != v[26..35];
         // each figure inside its interval
-        for k in [8, 11, 14] {
+        for k in [8, 11, 14, 26, 29, 32] {
             let [x, lo, hi] = [v[k], v[k + 1], v[k + 2]].map(|s| s.parse::<f64>().unwrap());
             assert!(lo <= x && x <= hi, "{line}");
         }
     }
+    assert!(
+        differs,
+        "the wider randomisation changed no run's tracking: {runs}"
+    );
     let ttf = std::fs::read_to_string(dir.path().join("results-a/ttf.csv")).unwrap();
     assert_eq!(ttf.lines().count(), 1 + 3 * 4, "{ttf}");
     for line in ttf.lines().skip(1) {
@@ -368,4 +388,25 @@ fn unfinished_runs_are_refused_unless_allowed_and_missing_ones_are_left_out() {
     run_experiment(&spec, &allowed, stop()).unwrap();
     let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
     assert_eq!(md.matches("(not started)").count(), 4, "{md}");
+}
+
+#[test]
+fn common_grounds_with_the_same_file_name_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = spec_text(dir.path(), "r");
+    let base = dir.path().join("baseline.toml");
+    let other = dir.path().join("other");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::copy(&base, other.join("baseline.toml")).unwrap();
+    let text = text.replace(
+        &format!("\"{}\"]", dir.path().join("wide.toml").display()),
+        &format!("\"{}\"]", other.join("baseline.toml").display()),
+    );
+    let file = dir.path().join("bad.toml");
+    std::fs::write(&file, text).unwrap();
+    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    assert!(
+        e.contains("randomization_from") && e.contains("baseline"),
+        "{e}"
+    );
 }

@@ -403,10 +403,12 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     };
 
     stage(1, "velocity tracking of every policy");
-    let common = match &spec.tracking.randomization_from {
-        Some(path) => Some(TrainConfig::from_toml_file(path)?.env.randomization),
-        None => None,
-    };
+    let common = spec
+        .tracking
+        .randomization_from
+        .iter()
+        .map(|path| Ok(TrainConfig::from_toml_file(path)?.env.randomization))
+        .collect::<Result<Vec<_>>>()?;
     let mut tracking = Vec::new();
     for (r, _) in runs.iter().filter(|(r, _)| available.contains(&r.label)) {
         let p = load_run(spec, &r.label)?;
@@ -422,10 +424,10 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         };
         let env = tracking_env(&p.env);
         let own = track(&env)?;
-        let on_common = match &common {
-            Some(c) => Some(track(&with_randomization(env, c))?),
-            None => None,
-        };
+        let on_common = common
+            .iter()
+            .map(|c| track(&with_randomization(env.clone(), c)))
+            .collect::<Result<Vec<_>>>()?;
         tracking.push(RunTracking {
             label: r.label.clone(),
             own,

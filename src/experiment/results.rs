@@ -34,8 +34,9 @@ pub struct RunRow {
     /// Under the run's own training randomisation (`None`: not evaluated).
     pub tracking: Option<TrackingEstimates>,
     pub tracking_episodes: usize,
-    /// The same under the experiment's common randomisation (`tracking.randomization_from`).
-    pub common_tracking: Option<TrackingEstimates>,
+    /// The same under each of the experiment's common randomisations
+    /// (`tracking.randomization_from`, in its order).
+    pub common_tracking: Vec<TrackingEstimates>,
 }
 
 /// The tracking figures with bootstrap intervals over robots.
@@ -85,12 +86,12 @@ impl TrackingEstimates {
     }
 }
 
-/// One run's tracking: under its own training randomisation, and under the common one.
+/// One run's tracking: under its own training randomisation, and under each common one.
 #[derive(Debug, Clone)]
 pub struct RunTracking {
     pub label: String,
     pub own: TrackingReport,
-    pub common: Option<TrackingReport>,
+    pub common: Vec<TrackingReport>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -142,8 +143,8 @@ pub struct ExperimentResults {
     pub name: String,
     pub confidence: String,
     pub runs: Vec<RunRow>,
-    /// The run config whose randomisation every policy was also tracked under.
-    pub common_randomization: Option<String>,
+    /// The run configs whose randomisation every policy was also tracked under.
+    pub common_randomization: Vec<String>,
     pub ttf: Vec<TtfRow>,
     pub platform: Vec<PlatformRow>,
     pub race: Vec<RaceRow>,
@@ -206,7 +207,9 @@ impl ExperimentResults {
                         .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
                     tracking: found.map(|t| estimates(&t.own)),
                     tracking_episodes: found.map_or(0, |t| t.own.episodes),
-                    common_tracking: found.and_then(|t| t.common.as_ref()).map(estimates),
+                    common_tracking: found
+                        .map(|t| t.common.iter().map(estimates).collect())
+                        .unwrap_or_default(),
                 }
             })
             .collect();
@@ -324,8 +327,9 @@ impl ExperimentResults {
             common_randomization: spec
                 .tracking
                 .randomization_from
-                .as_ref()
-                .map(|p| p.display().to_string()),
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect(),
             ttf: ttf_rows,
             platform: platform_rows,
             race: race_rows,
@@ -355,17 +359,11 @@ impl ExperimentResults {
             self.confidence
         );
         let _ = writeln!(s, "## Training runs\n");
-        let common = self.common_randomization.as_deref();
         let _ = writeln!(
             s,
-            "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |{}",
-            common.map_or(String::new(), |c| format!(" under `{c}`'s randomisation: lin / yaw / falls |"))
+            "| Method | iterations | env steps | wall clock (h) | terrain level | lin tracking | yaw tracking | falls |"
         );
-        let _ = writeln!(
-            s,
-            "|---|---:|---:|---:|---:|---:|---:|---:|{}",
-            if common.is_some() { "---:|" } else { "" }
-        );
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for r in &self.runs {
             let unfinished = if r.iterations_done == 0 {
                 " (not started)"
@@ -377,14 +375,9 @@ impl ExperimentResults {
             let [lin, yaw, falls] = r
                 .tracking
                 .map_or_else(|| ["-".to_string(), "-".into(), "-".into()], |t| t.cells());
-            let on_common = match (common, &r.common_tracking) {
-                (None, _) => String::new(),
-                (Some(_), None) => " - |".into(),
-                (Some(_), Some(c)) => format!(" {} |", c.cells().join(" / ")),
-            };
             let _ = writeln!(
                 s,
-                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {lin} | {yaw} | {falls} |{on_common}",
+                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {lin} | {yaw} | {falls} |",
                 r.label,
                 r.iterations_done,
                 r.iterations_target,
@@ -395,10 +388,8 @@ impl ExperimentResults {
         }
         let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground, each policy under its own training randomisation); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.",
             self.runs.first().map_or(0, |r| r.tracking_episodes));
-        if let Some(c) = common {
-            let _ = writeln!(s, "The last column: the same episodes with friction, added mass, motor strength, PD factors and centre of mass drawn from `{c}` for every policy (`rall eval tracking --randomization-from {c}`), so that all methods walk on the same ground.");
-        }
         let _ = writeln!(s);
+        self.common_ground_markdown(&mut s);
 
         self.methods_markdown(&mut s);
         let _ = writeln!(s, "## Per training run\n");
@@ -564,16 +555,75 @@ impl ExperimentResults {
         let _ = writeln!(s);
     }
 
+    /// Tracking with every policy on the same ground: one column per common
+    /// randomisation, beside each policy's own.
+    fn common_ground_markdown(&self, s: &mut String) {
+        if self.common_randomization.is_empty() {
+            return;
+        }
+        let _ = writeln!(s, "### Tracking on common ground: lin / yaw / falls\n");
+        let _ = write!(s, "| Method | own randomisation |");
+        for c in &self.common_randomization {
+            let _ = write!(s, " `{c}`'s |");
+        }
+        let _ = writeln!(
+            s,
+            "\n|---|---:|{}",
+            "---:|".repeat(self.common_randomization.len())
+        );
+        let show = |t: Option<&TrackingEstimates>| t.map_or("-".into(), |t| t.cells().join(" / "));
+        for r in &self.runs {
+            let _ = write!(s, "| {} | {} |", r.label, show(r.tracking.as_ref()));
+            for k in 0..self.common_randomization.len() {
+                let _ = write!(s, " {} |", show(r.common_tracking.get(k)));
+            }
+            let _ = writeln!(s);
+        }
+        let _ = writeln!(s, "\nThe same episodes (commands, noise, starts) with friction, added mass, motor strength, PD factors and centre of mass drawn from each config's `[env.randomization]` for every policy (`rall eval tracking --randomization-from CONFIG`, pushes off), so that all methods walk on the same ground; the targets above apply to the own column.\n");
+    }
+
     fn csv_files(&self) -> Vec<(&'static str, String)> {
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
-        let mut runs = String::from("method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,lin_tracking,lin_tracking_lo,lin_tracking_hi,yaw_tracking,yaw_tracking_lo,yaw_tracking_hi,fall_rate,fall_rate_lo,fall_rate_hi,common_lin_tracking,common_lin_tracking_lo,common_lin_tracking_hi,common_yaw_tracking,common_yaw_tracking_lo,common_yaw_tracking_hi,common_fall_rate,common_fall_rate_lo,common_fall_rate_hi\n");
+        let tracking_columns = |prefix: &str| {
+            ["lin_tracking", "yaw_tracking", "fall_rate"]
+                .iter()
+                .flat_map(|f| {
+                    [
+                        format!("{prefix}{f}"),
+                        format!("{prefix}{f}_lo"),
+                        format!("{prefix}{f}_hi"),
+                    ]
+                })
+                .collect::<Vec<_>>()
+                .join(",")
+        };
+        let mut runs = format!(
+            "method,config,seed,iterations_done,iterations_target,env_steps,wall_clock_h,terrain_level,{}",
+            tracking_columns("")
+        );
+        // one group of columns per common randomisation, named after its config file
+        for c in &self.common_randomization {
+            let _ = write!(
+                runs,
+                ",{}",
+                tracking_columns(&format!("on_{}_", common_column_name(c)))
+            );
+        }
+        runs.push('\n');
         let none = ",".repeat(8);
         for r in &self.runs {
             let own = r.tracking.map_or(none.clone(), |t| t.csv());
-            let common = r.common_tracking.map_or(none.clone(), |t| t.csv());
+            let common: String = (0..self.common_randomization.len())
+                .map(|k| {
+                    format!(
+                        ",{}",
+                        r.common_tracking.get(k).map_or(none.clone(), |t| t.csv())
+                    )
+                })
+                .collect();
             let _ = writeln!(
                 runs,
-                "{},{},{},{},{},{},{:.4},{},{own},{common}",
+                "{},{},{},{},{},{},{:.4},{},{own}{common}",
                 csv_field(&r.label),
                 csv_field(&r.config),
                 r.seed,
@@ -752,4 +802,21 @@ pub fn plots_list() -> [(&'static str, &'static str); 4] {
         ("race.svg", "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller"),
         ("race_iqr.svg", "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"),
     ]
+}
+
+/// A CSV column prefix for a common randomisation: its config's file stem
+/// (`configs/dr.toml` -> `dr`), other characters than [A-Za-z0-9_] as `_`.
+fn common_column_name(config: &str) -> String {
+    Path::new(config)
+        .file_stem()
+        .map_or_else(|| config.to_string(), |s| s.to_string_lossy().into_owned())
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
 }

@@ -68,11 +68,25 @@ pub struct RunSpec {
 pub struct TrackingSpec {
     pub episodes: usize,
     pub seed: u64,
-    /// A run config whose [env.randomization] every policy is also judged under
-    /// (`rall eval tracking --randomization-from`): the same ground for all methods,
-    /// beside each under its own training draws.
-    #[serde(default)]
-    pub randomization_from: Option<PathBuf>,
+    /// Run configs whose [env.randomization] every policy is also judged under
+    /// (`rall eval tracking --randomization-from`), one path or a list: the same ground
+    /// for all methods, beside each under its own training draws.
+    #[serde(default, deserialize_with = "one_or_many_paths")]
+    pub randomization_from: Vec<PathBuf>,
+}
+
+/// `key = "a.toml"` or `key = ["a.toml", "b.toml"]`.
+fn one_or_many_paths<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<PathBuf>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum OneOrMany {
+        One(PathBuf),
+        Many(Vec<PathBuf>),
+    }
+    Ok(match OneOrMany::deserialize(d)? {
+        OneOrMany::One(p) => vec![p],
+        OneOrMany::Many(v) => v,
+    })
 }
 
 /// Table I: TTF per load x terrain x push.
@@ -250,9 +264,19 @@ impl ExperimentSpec {
                 );
             }
         }
-        if let Some(p) = &self.tracking.randomization_from {
+        for (i, p) in self.tracking.randomization_from.iter().enumerate() {
             crate::config::TrainConfig::from_toml_file(p)
                 .with_context(|| format!("tracking.randomization_from = {:?}", p.display()))?;
+            // results/runs.csv names each one's columns after its file stem
+            if self.tracking.randomization_from[..i]
+                .iter()
+                .any(|q| q.file_stem() == p.file_stem())
+            {
+                bail!(
+                    "tracking.randomization_from: two configs named {:?} (the result columns are named after the file)",
+                    p.file_stem().unwrap_or_default()
+                );
+            }
         }
         if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
             bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");
