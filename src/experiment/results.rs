@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::pooled::{show_with_seeds, MethodTables};
-use super::spec::{ExperimentSpec, RunSpec};
+use super::spec::{common_ground_name, ExperimentSpec, RunSpec};
 use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
 use super::RunState;
 use crate::eval::race::IqrBin;
@@ -606,7 +606,7 @@ impl ExperimentResults {
             let _ = write!(
                 runs,
                 ",{}",
-                tracking_columns(&format!("on_{}_", common_column_name(c)))
+                tracking_columns(&format!("on_{}_", common_ground_name(Path::new(c))))
             );
         }
         runs.push('\n');
@@ -802,21 +802,4 @@ pub fn plots_list() -> [(&'static str, &'static str); 4] {
         ("race.svg", "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller"),
         ("race_iqr.svg", "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"),
     ]
-}
-
-/// A CSV column prefix for a common randomisation: its config's file stem
-/// (`configs/dr.toml` -> `dr`), other characters than [A-Za-z0-9_] as `_`.
-fn common_column_name(config: &str) -> String {
-    Path::new(config)
-        .file_stem()
-        .map_or_else(|| config.to_string(), |s| s.to_string_lossy().into_owned())
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '_' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
 }

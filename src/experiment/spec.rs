@@ -89,6 +89,24 @@ fn one_or_many_paths<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<PathB
     })
 }
 
+/// The name of a common randomisation in results (`runs.csv` column prefixes): its
+/// config's file stem (`configs/dr.toml` -> `dr`), other characters than [A-Za-z0-9_] as `_`.
+pub fn common_ground_name(config: &Path) -> String {
+    config
+        .file_stem()
+        .unwrap_or(config.as_os_str())
+        .to_string_lossy()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
 /// Table I: TTF per load x terrain x push.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -267,14 +285,14 @@ impl ExperimentSpec {
         for (i, p) in self.tracking.randomization_from.iter().enumerate() {
             crate::config::TrainConfig::from_toml_file(p)
                 .with_context(|| format!("tracking.randomization_from = {:?}", p.display()))?;
-            // results/runs.csv names each one's columns after its file stem
+            // results/runs.csv names each one's columns after it
+            let name = common_ground_name(p);
             if self.tracking.randomization_from[..i]
                 .iter()
-                .any(|q| q.file_stem() == p.file_stem())
+                .any(|q| common_ground_name(q) == name)
             {
                 bail!(
-                    "tracking.randomization_from: two configs named {:?} (the result columns are named after the file)",
-                    p.file_stem().unwrap_or_default()
+                    "tracking.randomization_from: two configs named {name:?} (the result columns are named after the file)"
                 );
             }
         }
@@ -308,5 +326,21 @@ impl ExperimentSpec {
     /// `<runs_dir>/<name>-s<seed>`.
     pub fn run_dir(&self, r: &RunSpec) -> PathBuf {
         self.runs_dir.join(self.run_dir_name(r))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::common_ground_name;
+    use std::path::Path;
+
+    #[test]
+    fn common_ground_names_are_the_sanitised_file_stem() {
+        assert_eq!(common_ground_name(Path::new("configs/dr.toml")), "dr");
+        // two different files that would name the same CSV columns
+        assert_eq!(
+            common_ground_name(Path::new("a/wide-dr.toml")),
+            common_ground_name(Path::new("b/wide.dr.toml"))
+        );
     }
 }
