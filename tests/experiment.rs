@@ -410,3 +410,19 @@ fn common_grounds_with_the_same_file_name_are_refused() {
         "{e}"
     );
 }
+
+#[test]
+fn a_common_ground_that_is_not_a_path_is_refused_with_what_it_takes() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = spec_text(dir.path(), "r");
+    let start = text.find("randomization_from = ").unwrap();
+    let end = start + text[start..].find('\n').unwrap();
+    let text = format!("{}randomization_from = 3{}", &text[..start], &text[end..]);
+    let file = dir.path().join("bad.toml");
+    std::fs::write(&file, text).unwrap();
+    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    assert!(
+        e.contains("randomization_from") && e.contains("a config path or a list of config paths"),
+        "{e}"
+    );
+}

@@ -78,7 +78,7 @@ pub struct TrackingSpec {
 /// `key = "a.toml"` or `key = ["a.toml", "b.toml"]`.
 fn one_or_many_paths<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<PathBuf>, D::Error> {
     #[derive(Deserialize)]
-    #[serde(untagged)]
+    #[serde(untagged, expecting = "a config path or a list of config paths")]
     enum OneOrMany {
         One(PathBuf),
         Many(Vec<PathBuf>),
