@@ -348,6 +348,13 @@ fn a_single_meta_table_is_one_controller_and_a_bad_key_in_it_is_named() {
     assert!(e.contains("min_safe_step"), "{e}");
 }
 
+/// The error `ExperimentSpec::from_file` gives for `text` as an experiment file.
+fn refusal(dir: &Path, text: &str) -> String {
+    let file = dir.join("bad.toml");
+    std::fs::write(&file, text).unwrap();
+    format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err())
+}
+
 #[test]
 fn an_experiment_file_naming_an_unknown_method_is_refused() {
     let dir = tempfile::tempdir().unwrap();
@@ -355,9 +362,7 @@ fn an_experiment_file_naming_an_unknown_method_is_refused() {
         "methods = [\"Baseline\", \"RALL seed 2\"]\nagents",
         "methods = [\"Baselin\"]\nagents",
     );
-    let file = dir.path().join("bad.toml");
-    std::fs::write(&file, text).unwrap();
-    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    let e = refusal(dir.path(), &text);
     assert!(e.contains("race.methods") && e.contains("Baselin"), "{e}");
 }
 
@@ -402,9 +407,7 @@ fn common_grounds_with_the_same_file_name_are_refused() {
         &format!("\"{}\"]", dir.path().join("wide.toml").display()),
         &format!("\"{}\"]", other.join("baseline.toml").display()),
     );
-    let file = dir.path().join("bad.toml");
-    std::fs::write(&file, text).unwrap();
-    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    let e = refusal(dir.path(), &text);
     assert!(
         e.contains("randomization_from") && e.contains("baseline"),
         "{e}"
@@ -418,9 +421,7 @@ fn a_common_ground_that_is_not_a_path_is_refused_with_what_it_takes() {
     let start = text.find("randomization_from = ").unwrap();
     let end = start + text[start..].find('\n').unwrap();
     let text = format!("{}randomization_from = 3{}", &text[..start], &text[end..]);
-    let file = dir.path().join("bad.toml");
-    std::fs::write(&file, text).unwrap();
-    let e = format!("{:#}", ExperimentSpec::from_file(&file).unwrap_err());
+    let e = refusal(dir.path(), &text);
     assert!(
         e.contains("randomization_from") && e.contains("a config path or a list of config paths"),
         "{e}"
