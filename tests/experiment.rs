@@ -427,3 +427,75 @@ fn a_common_ground_that_is_not_a_path_is_refused_with_what_it_takes() {
         "{e}"
     );
 }
+
+#[test]
+fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_it() {
+    use rall::experiment::{choose_final_policies, selected_checkpoint};
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("slice.toml");
+    let rule = "\n[selection]\nwindow = 2\nevery = 1\nepisodes = 4\nseed = 8\n";
+    std::fs::write(&file, spec_text(dir.path(), "results") + rule).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
+    choose_final_policies(&spec, 2).unwrap();
+    for r in &spec.runs {
+        let run = spec.run_dir(r);
+        let csv = std::fs::read_to_string(run.join("selection.csv")).unwrap();
+        let rows: Vec<Vec<&str>> = csv
+            .lines()
+            .skip(2)
+            .map(|l| l.split(',').collect())
+            .collect();
+        // both checkpoints of the window are candidates, one is chosen, and it falls least
+        assert_eq!(rows.len(), 2, "{csv}");
+        let chosen: Vec<_> = rows.iter().filter(|c| c[4] == "1").collect();
+        assert_eq!(chosen.len(), 1, "{csv}");
+        let least = rows
+            .iter()
+            .map(|c| c[1].parse::<f64>().unwrap())
+            .fold(f64::MAX, f64::min);
+        assert_eq!(chosen[0][1].parse::<f64>().unwrap(), least, "{csv}");
+        let it: usize = chosen[0][0].parse().unwrap();
+        if rows[0][1] == rows[1][1] {
+            assert_eq!(it, 2, "a tie goes to the later checkpoint: {csv}");
+        }
+        let ckpt = run.join(format!("checkpoints/model_{it:06}.safetensors"));
+        assert_eq!(
+            std::fs::read(run.join("selected.safetensors")).unwrap(),
+            std::fs::read(&ckpt).unwrap()
+        );
+        assert_eq!(
+            selected_checkpoint(&spec, r).unwrap(),
+            Some(run.join("selected.safetensors"))
+        );
+    }
+    // a stored choice is reused (no candidate needed any more) ...
+    let first = spec.run_dir(&spec.runs[0]);
+    std::fs::remove_dir_all(first.join("checkpoints")).unwrap();
+    choose_final_policies(&spec, 2).unwrap();
+    // ... and travels with the shipped run: a fresh clone evaluates the same policy
+    ship_all(&spec, &file).unwrap();
+    std::fs::remove_dir_all(dir.path().join("runs")).unwrap();
+    let eval_only = ExperimentOptions {
+        train: false,
+        evaluate: true,
+        allow_unfinished: false,
+    };
+    run_experiment(&spec, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
+    let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
+    assert_eq!(md.matches(", policy of ").count(), 4, "{md}");
+    // another rule chooses anew, and cannot without the candidates
+    let other = spec_text(dir.path(), "results") + &rule.replace("seed = 8", "seed = 9");
+    std::fs::write(&file, other).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    let e = format!("{:#}", choose_final_policies(&spec, 2).unwrap_err());
+    assert!(e.contains("no checkpoint of iteration"), "{e}");
+}
+
+#[test]
+fn choosing_the_final_policy_on_the_tracking_episodes_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let rule = "\n[selection]\nwindow = 2\nevery = 1\nepisodes = 4\nseed = 7\n";
+    let e = refusal(dir.path(), &(spec_text(dir.path(), "results") + rule));
+    assert!(e.contains("other episodes"), "{e}");
+}

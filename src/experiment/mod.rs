@@ -7,6 +7,7 @@
 pub mod plots;
 pub mod pooled;
 pub mod results;
+pub mod selection;
 pub mod spec;
 pub mod stats;
 
@@ -153,7 +154,13 @@ fn value_differences(at: &str, a: &toml::Value, b: &toml::Value, out: &mut Vec<S
 }
 
 /// Files of a run that travel with its checkpoint.
-const SHIPPED_FILES: [&str; 3] = ["config.toml", "metrics.csv", "adaptation.csv"];
+const SHIPPED_FILES: [&str; 5] = [
+    "config.toml",
+    "metrics.csv",
+    "adaptation.csv",
+    selection::SELECTION_CSV,
+    selection::SELECTED,
+];
 
 /// Copies `from` to `to` through a temp file and a rename.
 fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
@@ -301,13 +308,83 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
         .filter(|p| p.exists()))
 }
 
-/// The latest policy of the run labelled `label`.
+/// The chosen final policy of finished run `r` under `[selection]`: in its run
+/// directory, else in its shipped copy; `None` without `[selection]`, for an
+/// unfinished run, or when it has not been chosen yet ([`choose_final_policies`]).
+pub fn selected_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Option<PathBuf>> {
+    let Some(sel) = &spec.selection else {
+        return Ok(None);
+    };
+    let state = run_state(spec, r)?;
+    if !state.done() {
+        return Ok(None);
+    }
+    // the shipped copy only stands in for a run directory that has no checkpoints
+    // (as for newest_checkpoint): a run trained anew must not get an old choice
+    let rd = RunDir {
+        root: state.dir.clone(),
+    };
+    if rd.latest().exists() || rd.root.join("checkpoints").exists() {
+        return Ok(selection::stored(&state.dir, sel, state.target));
+    }
+    let shipped = spec
+        .shipped_dir
+        .as_ref()
+        .map(|s| s.join(spec.run_dir_name(r)));
+    Ok(shipped.and_then(|d| selection::stored(&d, sel, state.target)))
+}
+
+/// The final policy of every finished run by the experiment's `[selection]` rule:
+/// reuses a stored choice made under the same rule, else tracks each candidate
+/// checkpoint on the validation episodes and stores the choice in the run directory.
+pub fn choose_final_policies(spec: &ExperimentSpec, threads: usize) -> Result<()> {
+    let Some(sel) = &spec.selection else {
+        return Ok(());
+    };
+    for r in &spec.runs {
+        let state = run_state(spec, r)?;
+        if !state.done() || selected_checkpoint(spec, r)?.is_some() {
+            continue;
+        }
+        let chosen = selection::select(&state.dir, sel, state.target, |path| {
+            let p = NamedPolicy::load(&r.label, path)?;
+            let t = evaluate_tracking(
+                &p.learner,
+                &tracking_env(&p.env),
+                sel.episodes,
+                threads,
+                sel.seed,
+                ActionMode::Mean,
+            )?;
+            Ok(selection::Candidate {
+                iteration: 0,
+                fall_rate: t.fall_rate,
+                lin_vel_score: t.lin_vel_score,
+                yaw_rate_score: t.yaw_rate_score,
+            })
+        })
+        .with_context(|| format!("run {:?}", r.label))?;
+        eprintln!(
+            "  {}: final policy = iteration {} ({:.1}% falls on validation)",
+            r.label,
+            chosen.iteration,
+            100.0 * chosen.fall_rate
+        );
+    }
+    Ok(())
+}
+
+/// The final policy of the run labelled `label`: the chosen one under
+/// `[selection]`, else the latest.
 fn load_run(spec: &ExperimentSpec, label: &str) -> Result<NamedPolicy> {
     let r = spec
         .run(label)
         .with_context(|| format!("no run labelled {label:?}"))?;
-    let path = newest_checkpoint(spec, r)?
-        .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?;
+    let path = match selected_checkpoint(spec, r)? {
+        Some(p) => p,
+        None => newest_checkpoint(spec, r)?
+            .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?,
+    };
     NamedPolicy::load(label, &path)
 }
 
@@ -402,6 +479,10 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         )
     };
 
+    if spec.selection.is_some() {
+        eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
+        choose_final_policies(spec, threads)?;
+    }
     stage(1, "velocity tracking of every policy");
     let common = spec
         .tracking
@@ -428,10 +509,15 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             .iter()
             .map(|c| track(&with_randomization(env.clone(), c)))
             .collect::<Result<Vec<_>>>()?;
+        let policy_iteration = match selected_checkpoint(spec, r)? {
+            Some(path) => Some(crate::runner::load_policy(&path)?.progress.iteration),
+            None => None,
+        };
         tracking.push(RunTracking {
             label: r.label.clone(),
             own,
             common: on_common,
+            policy_iteration,
         });
     }
 

@@ -34,6 +34,8 @@ pub struct RunRow {
     /// Under the run's own training randomisation (`None`: not evaluated).
     pub tracking: Option<TrackingEstimates>,
     pub tracking_episodes: usize,
+    /// The iteration of the evaluated policy when `[selection]` chose it (else the last).
+    pub policy_iteration: Option<usize>,
     /// The same under each of the experiment's common randomisations
     /// (`tracking.randomization_from`, in its order).
     pub common_tracking: Vec<TrackingEstimates>,
@@ -92,6 +94,8 @@ pub struct RunTracking {
     pub label: String,
     pub own: TrackingReport,
     pub common: Vec<TrackingReport>,
+    /// The iteration of the policy tracked, when `[selection]` chose it.
+    pub policy_iteration: Option<usize>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -206,6 +210,7 @@ impl ExperimentResults {
                         .as_ref()
                         .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
                     tracking: found.map(|t| estimates(&t.own)),
+                    policy_iteration: found.and_then(|t| t.policy_iteration),
                     tracking_episodes: found.map_or(0, |t| t.own.episodes),
                     common_tracking: found
                         .map(|t| t.common.iter().map(estimates).collect())
@@ -372,12 +377,15 @@ impl ExperimentResults {
             } else {
                 ""
             };
+            let chosen = r
+                .policy_iteration
+                .map_or(String::new(), |it| format!(", policy of {it}"));
             let [lin, yaw, falls] = r
                 .tracking
                 .map_or_else(|| ["-".to_string(), "-".into(), "-".into()], |t| t.cells());
             let _ = writeln!(
                 s,
-                "| {} | {} / {}{unfinished} | {:.1} M | {:.2} | {} | {lin} | {yaw} | {falls} |",
+                "| {} | {} / {}{unfinished}{chosen} | {:.1} M | {:.2} | {} | {lin} | {yaw} | {falls} |",
                 r.label,
                 r.iterations_done,
                 r.iterations_target,

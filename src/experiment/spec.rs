@@ -25,6 +25,9 @@ pub struct ExperimentSpec {
     #[serde(rename = "run")]
     pub runs: Vec<RunSpec>,
     pub tracking: TrackingSpec,
+    /// How each run's final policy is chosen (`[selection]`); absent: its last checkpoint.
+    #[serde(default)]
+    pub selection: Option<super::selection::SelectionSpec>,
     pub ttf: TtfSpec,
     pub platform: PlatformSpec,
     pub race: RaceSpec,
@@ -295,6 +298,9 @@ impl ExperimentSpec {
                     "tracking.randomization_from: two configs named {name:?} (the result columns are named after the file)"
                 );
             }
+        }
+        if let Some(sel) = &self.selection {
+            sel.validate(self.tracking.seed)?;
         }
         if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
             bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");

@@ -1,0 +1,210 @@
+//! Which checkpoint is a run's final policy, by a rule written in the experiment
+//! file (`[selection]`): among the checkpoints of the run's last `window` iterations
+//! (every `every`), the one that falls least on validation episodes, a seed the
+//! tracking table does not use; a tie goes to the later checkpoint. Without
+//! `[selection]` the final policy is the last checkpoint.
+//!
+//! Why (policies/README.md, session 17): with the scalar critic a checkpoint's fall
+//! rate swings between 0% and 11% from one checkpoint to the next, 50 iterations
+//! apart, so the last one alone is a draw.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+/// The chosen checkpoint, beside the run's `latest.safetensors`.
+pub const SELECTED: &str = "selected.safetensors";
+/// Every candidate's validation figures and which was chosen.
+pub const SELECTION_CSV: &str = "selection.csv";
+
+/// `[selection]` of the experiment file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SelectionSpec {
+    /// Candidates: the checkpoints of the last `window` iterations of the budget ...
+    pub window: usize,
+    /// ... at every `every`-th iteration (the runs' save interval or a multiple of it).
+    pub every: usize,
+    /// Validation episodes per candidate (`rall eval tracking`, mean actions).
+    pub episodes: usize,
+    /// Validation seed; must differ from `[tracking] seed`.
+    pub seed: u64,
+}
+
+/// One candidate's validation result.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Candidate {
+    pub iteration: usize,
+    pub fall_rate: f64,
+    pub lin_vel_score: f64,
+    pub yaw_rate_score: f64,
+}
+
+impl SelectionSpec {
+    pub fn validate(&self, tracking_seed: u64) -> Result<()> {
+        if self.window == 0 || self.every == 0 || self.episodes == 0 {
+            bail!("selection: window, every and episodes must be at least 1");
+        }
+        if self.seed == tracking_seed {
+            bail!(
+                "selection.seed is {} like tracking.seed: the final policy must be chosen on other episodes than those it is judged on",
+                self.seed
+            );
+        }
+        Ok(())
+    }
+
+    /// Candidate iterations of a run whose budget (with RMA's phase 2) is `target`,
+    /// oldest first; the last iteration is always one.
+    pub fn candidates(&self, target: usize) -> Vec<usize> {
+        let first = target.saturating_sub(self.window) + 1;
+        (first..=target)
+            .filter(|&it| it % self.every == 0 || it == target)
+            .collect()
+    }
+
+    /// First line of `selection.csv`: a stored choice is reused only under the same rule.
+    fn header(&self, target: usize) -> String {
+        format!(
+            "# final policy: fewest falls over {} validation episodes (seed {}) among the checkpoints of iterations {}-{} every {}",
+            self.episodes,
+            self.seed,
+            target.saturating_sub(self.window) + 1,
+            target,
+            self.every
+        )
+    }
+}
+
+/// Index of the candidate with the fewest falls; a tie goes to the later one.
+pub fn choose(c: &[Candidate]) -> Option<usize> {
+    (0..c.len()).min_by(|&a, &b| c[a].fall_rate.total_cmp(&c[b].fall_rate).then(b.cmp(&a)))
+}
+
+/// The checkpoint file of iteration `it` in run directory `dir`.
+fn checkpoint_of(dir: &Path, it: usize, target: usize) -> Option<PathBuf> {
+    let numbered = dir.join(format!("checkpoints/model_{it:06}.safetensors"));
+    if numbered.exists() {
+        return Some(numbered);
+    }
+    let latest = dir.join(crate::runner::LATEST);
+    (it == target && latest.exists()).then_some(latest)
+}
+
+/// The stored choice in `dir`, if it was made under this rule and budget.
+pub fn stored(dir: &Path, spec: &SelectionSpec, target: usize) -> Option<PathBuf> {
+    let text = std::fs::read_to_string(dir.join(SELECTION_CSV)).ok()?;
+    let selected = dir.join(SELECTED);
+    (text.lines().next() == Some(spec.header(target).as_str()) && selected.exists())
+        .then_some(selected)
+}
+
+/// Chooses run `dir`'s final policy (`validate` tracks one checkpoint on the
+/// validation episodes), writes `selection.csv` and `selected.safetensors` (both
+/// atomically) and returns the chosen candidate.
+pub fn select(
+    dir: &Path,
+    spec: &SelectionSpec,
+    target: usize,
+    mut validate: impl FnMut(&Path) -> Result<Candidate>,
+) -> Result<Candidate> {
+    let its = spec.candidates(target);
+    let paths = its
+        .iter()
+        .map(|&it| {
+            checkpoint_of(dir, it, target).with_context(|| {
+                format!(
+                    "choosing the final policy of {}: it has no checkpoint of iteration {it} (the rule takes iterations {}-{target} every {}; runs save every runner.save_interval)",
+                    dir.display(),
+                    its[0],
+                    spec.every
+                )
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut found = Vec::with_capacity(paths.len());
+    for (&it, path) in its.iter().zip(&paths) {
+        let c = validate(path)?;
+        found.push(Candidate { iteration: it, ..c });
+    }
+    let k = choose(&found).context("no candidates")?;
+    let mut csv = spec.header(target);
+    csv.push_str("\niteration,fall_pct,lin_tracking,yaw_tracking,chosen\n");
+    for (i, c) in found.iter().enumerate() {
+        let _ = writeln!(
+            csv,
+            "{},{:.2},{:.4},{:.4},{}",
+            c.iteration,
+            100.0 * c.fall_rate,
+            c.lin_vel_score,
+            c.yaw_rate_score,
+            u8::from(i == k)
+        );
+    }
+    let tmp = dir.join("selected.copy.tmp");
+    std::fs::copy(&paths[k], &tmp).with_context(|| format!("copying {}", paths[k].display()))?;
+    std::fs::rename(&tmp, dir.join(SELECTED))
+        .with_context(|| format!("writing {}", dir.join(SELECTED).display()))?;
+    let tmp = dir.join("selection.csv.tmp");
+    std::fs::write(&tmp, csv).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, dir.join(SELECTION_CSV))
+        .with_context(|| format!("writing {}", dir.join(SELECTION_CSV).display()))?;
+    Ok(found[k])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cand(iteration: usize, fall_rate: f64) -> Candidate {
+        Candidate {
+            iteration,
+            fall_rate,
+            lin_vel_score: 0.9,
+            yaw_rate_score: 0.8,
+        }
+    }
+
+    #[test]
+    fn candidates_are_the_window_every_k_and_the_last_iteration() {
+        let s = SelectionSpec {
+            window: 500,
+            every: 50,
+            episodes: 256,
+            seed: 4242,
+        };
+        let c = s.candidates(4500);
+        assert_eq!(c.len(), 10);
+        assert_eq!((c[0], c[9]), (4050, 4500));
+        // a budget off the grid still has its last iteration
+        assert_eq!(s.candidates(120), vec![50, 100, 120]);
+    }
+
+    #[test]
+    fn the_fewest_falls_win_and_a_tie_goes_to_the_later_checkpoint() {
+        let c = [
+            cand(50, 0.02),
+            cand(100, 0.0),
+            cand(150, 0.05),
+            cand(200, 0.0),
+        ];
+        assert_eq!(choose(&c), Some(3));
+        assert_eq!(choose(&c[..3]), Some(1));
+        assert_eq!(choose(&[]), None);
+    }
+
+    #[test]
+    fn choosing_on_the_tracking_seed_is_refused() {
+        let s = SelectionSpec {
+            window: 100,
+            every: 50,
+            episodes: 8,
+            seed: 777,
+        };
+        let e = s.validate(777).unwrap_err().to_string();
+        assert!(e.contains("other episodes"), "{e}");
+        s.validate(778).unwrap();
+    }
+}
