@@ -170,6 +170,19 @@ fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
     std::fs::rename(&tmp, to).with_context(|| format!("writing {}", to.display()))
 }
 
+/// Writes `text` to `path` through a temp file and a rename.
+fn write_atomic(path: &Path, text: &str) -> Result<()> {
+    let tmp = path.with_extension("write.tmp");
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Whether a run directory holds checkpoints of its own (else its shipped copy
+/// stands in for it).
+fn has_checkpoints(rd: &RunDir) -> bool {
+    rd.latest().exists() || rd.root.join("checkpoints").exists()
+}
+
 /// Copies the files that travel with a checkpoint from run directory `run` to its
 /// shipped copy `dst`, and removes those the run does not have: a run trained anew
 /// under an old run's name must not ship the old run's `adaptation.csv`.
@@ -193,8 +206,7 @@ pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool>
     };
     let src = ship.join(spec.run_dir_name(r));
     let dst = spec.run_dir(r);
-    let rd = RunDir { root: dst.clone() };
-    if rd.latest().exists() || dst.join("checkpoints").exists() || !src.join(LATEST).exists() {
+    if has_checkpoints(&RunDir { root: dst.clone() }) || !src.join(LATEST).exists() {
         return Ok(false);
     }
     std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
@@ -298,7 +310,7 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
     let rd = RunDir {
         root: spec.run_dir(r),
     };
-    if rd.latest().exists() || rd.root.join("checkpoints").exists() {
+    if has_checkpoints(&rd) {
         return Ok(Some(rd.resume_point()?.0));
     }
     Ok(spec
@@ -308,30 +320,36 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
         .filter(|p| p.exists()))
 }
 
-/// The chosen final policy of finished run `r` under `[selection]`: in its run
-/// directory, else in its shipped copy; `None` without `[selection]`, for an
-/// unfinished run, or when it has not been chosen yet ([`choose_final_policies`]).
-pub fn selected_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Option<PathBuf>> {
-    let Some(sel) = &spec.selection else {
-        return Ok(None);
-    };
-    let state = run_state(spec, r)?;
+/// The chosen final policy of finished run `r` under `[selection]` (its file and
+/// iteration): in its run directory, else in its shipped copy; `None` without
+/// `[selection]`, for an unfinished run, or when it has not been chosen yet
+/// ([`choose_final_policies`]).
+fn selected_in(
+    spec: &ExperimentSpec,
+    r: &spec::RunSpec,
+    state: &RunState,
+) -> Option<(PathBuf, usize)> {
+    let sel = spec.selection.as_ref()?;
     if !state.done() {
-        return Ok(None);
+        return None;
     }
     // the shipped copy only stands in for a run directory that has no checkpoints
     // (as for newest_checkpoint): a run trained anew must not get an old choice
-    let rd = RunDir {
+    if has_checkpoints(&RunDir {
         root: state.dir.clone(),
-    };
-    if rd.latest().exists() || rd.root.join("checkpoints").exists() {
-        return Ok(selection::stored(&state.dir, sel, state.target));
+    }) {
+        return selection::stored(&state.dir, sel, state.target);
     }
-    let shipped = spec
-        .shipped_dir
-        .as_ref()
-        .map(|s| s.join(spec.run_dir_name(r)));
-    Ok(shipped.and_then(|d| selection::stored(&d, sel, state.target)))
+    let shipped = spec.shipped_dir.as_ref()?.join(spec.run_dir_name(r));
+    selection::stored(&shipped, sel, state.target)
+}
+
+/// The file of run `r`'s chosen final policy ([`selected_in`]).
+pub fn selected_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Option<PathBuf>> {
+    if spec.selection.is_none() {
+        return Ok(None);
+    }
+    Ok(selected_in(spec, r, &run_state(spec, r)?).map(|(path, _)| path))
 }
 
 /// The final policy of every finished run by the experiment's `[selection]` rule:
@@ -343,7 +361,7 @@ pub fn choose_final_policies(spec: &ExperimentSpec, threads: usize) -> Result<()
     };
     for r in &spec.runs {
         let state = run_state(spec, r)?;
-        if !state.done() || selected_checkpoint(spec, r)?.is_some() {
+        if !state.done() || selected_in(spec, r, &state).is_some() {
             continue;
         }
         let chosen = selection::select(&state.dir, sel, state.target, |path| {
@@ -375,17 +393,29 @@ pub fn choose_final_policies(spec: &ExperimentSpec, threads: usize) -> Result<()
 }
 
 /// The final policy of the run labelled `label`: the chosen one under
-/// `[selection]`, else the latest.
-fn load_run(spec: &ExperimentSpec, label: &str) -> Result<NamedPolicy> {
+/// `[selection]` (with its iteration), else the latest.
+fn load_final_policy(spec: &ExperimentSpec, label: &str) -> Result<(NamedPolicy, Option<usize>)> {
     let r = spec
         .run(label)
         .with_context(|| format!("no run labelled {label:?}"))?;
-    let path = match selected_checkpoint(spec, r)? {
-        Some(p) => p,
-        None => newest_checkpoint(spec, r)?
-            .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?,
+    let chosen = match spec.selection {
+        Some(_) => selected_in(spec, r, &run_state(spec, r)?),
+        None => None,
     };
-    NamedPolicy::load(label, &path)
+    let (path, iteration) = match chosen {
+        Some((path, it)) => (path, Some(it)),
+        None => (
+            newest_checkpoint(spec, r)?
+                .with_context(|| format!("run {label:?} has no checkpoint yet: train it first"))?,
+            None,
+        ),
+    };
+    Ok((NamedPolicy::load(label, &path)?, iteration))
+}
+
+/// [`load_final_policy`] without the iteration.
+fn load_run(spec: &ExperimentSpec, label: &str) -> Result<NamedPolicy> {
+    load_final_policy(spec, label).map(|(p, _)| p)
 }
 
 fn load_runs(spec: &ExperimentSpec, labels: &[String]) -> Result<Vec<NamedPolicy>> {
@@ -492,7 +522,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         .collect::<Result<Vec<_>>>()?;
     let mut tracking = Vec::new();
     for (r, _) in runs.iter().filter(|(r, _)| available.contains(&r.label)) {
-        let p = load_run(spec, &r.label)?;
+        let (p, policy_iteration) = load_final_policy(spec, &r.label)?;
         let track = |env: &EnvConfig| {
             evaluate_tracking(
                 &p.learner,
@@ -509,10 +539,6 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             .iter()
             .map(|c| track(&with_randomization(env.clone(), c)))
             .collect::<Result<Vec<_>>>()?;
-        let policy_iteration = match selected_checkpoint(spec, r)? {
-            Some(path) => Some(crate::runner::load_policy(&path)?.progress.iteration),
-            None => None,
-        };
         tracking.push(RunTracking {
             label: r.label.clone(),
             own,

@@ -14,6 +14,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
+use crate::runner::RunDir;
+
 /// The chosen checkpoint, beside the run's `latest.safetensors`.
 pub const SELECTED: &str = "selected.safetensors";
 /// Every candidate's validation figures and which was chosen.
@@ -85,20 +87,34 @@ pub fn choose(c: &[Candidate]) -> Option<usize> {
 
 /// The checkpoint file of iteration `it` in run directory `dir`.
 fn checkpoint_of(dir: &Path, it: usize, target: usize) -> Option<PathBuf> {
-    let numbered = dir.join(format!("checkpoints/model_{it:06}.safetensors"));
+    let rd = RunDir {
+        root: dir.to_path_buf(),
+    };
+    let numbered = rd.checkpoint(it);
     if numbered.exists() {
         return Some(numbered);
     }
-    let latest = dir.join(crate::runner::LATEST);
-    (it == target && latest.exists()).then_some(latest)
+    (it == target && rd.latest().exists()).then(|| rd.latest())
 }
 
-/// The stored choice in `dir`, if it was made under this rule and budget.
-pub fn stored(dir: &Path, spec: &SelectionSpec, target: usize) -> Option<PathBuf> {
+/// The stored choice in `dir` (its file and iteration), if it was made under this
+/// rule and budget.
+pub fn stored(dir: &Path, spec: &SelectionSpec, target: usize) -> Option<(PathBuf, usize)> {
     let text = std::fs::read_to_string(dir.join(SELECTION_CSV)).ok()?;
+    let mut lines = text.lines();
+    if lines.next() != Some(spec.header(target).as_str()) {
+        return None;
+    }
+    // the row whose `chosen` column is 1
+    let iteration = lines
+        .skip(1)
+        .find(|l| l.ends_with(",1"))?
+        .split(',')
+        .next()?
+        .parse()
+        .ok()?;
     let selected = dir.join(SELECTED);
-    (text.lines().next() == Some(spec.header(target).as_str()) && selected.exists())
-        .then_some(selected)
+    selected.exists().then_some((selected, iteration))
 }
 
 /// Chooses run `dir`'s final policy (`validate` tracks one checkpoint on the
@@ -143,14 +159,8 @@ pub fn select(
             u8::from(i == k)
         );
     }
-    let tmp = dir.join("selected.copy.tmp");
-    std::fs::copy(&paths[k], &tmp).with_context(|| format!("copying {}", paths[k].display()))?;
-    std::fs::rename(&tmp, dir.join(SELECTED))
-        .with_context(|| format!("writing {}", dir.join(SELECTED).display()))?;
-    let tmp = dir.join("selection.csv.tmp");
-    std::fs::write(&tmp, csv).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, dir.join(SELECTION_CSV))
-        .with_context(|| format!("writing {}", dir.join(SELECTION_CSV).display()))?;
+    super::copy_atomic(&paths[k], &dir.join(SELECTED))?;
+    super::write_atomic(&dir.join(SELECTION_CSV), &csv)?;
     Ok(found[k])
 }
 
