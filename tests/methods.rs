@@ -416,6 +416,69 @@ fn rma_resumes_inside_phase_two_without_repeating_rows() {
 }
 
 #[test]
+fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
+    use rall::runner::{restart_adaptation, RunDir};
+    let mut cfg = tiny_method("rma");
+    cfg.learner.adaptation.as_mut().unwrap().iterations = 2;
+    cfg.runner.save_interval = 1;
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("rma");
+    let stop = || Arc::new(AtomicBool::new(false));
+    let s = train(cfg.clone(), &run, false, stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 3);
+    let before = load_policy(&run.join("latest.safetensors")).unwrap();
+    let rd = RunDir { root: run.clone() };
+    assert_eq!(restart_adaptation(&rd).unwrap(), 1);
+    let rewound = load_policy(&run.join("latest.safetensors")).unwrap();
+    assert_eq!(rewound.progress.iteration, 1);
+    // the teacher is carried over exactly, the adaptation module starts afresh
+    let tensors = |p: &rall::runner::LoadedPolicy| p.learner.state();
+    let (old, new) = (tensors(&before), tensors(&rewound));
+    let mut adapt_changed = false;
+    for t in &new {
+        let o = old.iter().find(|o| o.name == t.name).unwrap();
+        if t.name.contains("adapt") {
+            adapt_changed |= o.data != t.data;
+        } else {
+            assert_eq!(o.data, t.data, "{} changed", t.name);
+        }
+    }
+    assert!(adapt_changed, "the adaptation module was not reset");
+    // nothing is deleted: phase 2's checkpoints are kept aside
+    for f in [
+        "model_000002.safetensors",
+        "model_000003.safetensors",
+        "latest-at-3.safetensors",
+    ] {
+        assert!(run.join("discarded-adaptation").join(f).exists(), "{f}");
+    }
+    assert!(!run.join("checkpoints/model_000003.safetensors").exists());
+    // a run at the end of phase 1 has nothing to restart
+    let e = format!("{:#}", restart_adaptation(&rd).unwrap_err());
+    assert!(e.contains("nothing to restart"), "{e}");
+    // phase 2 trains again, its log without the discarded rows
+    let s = train(cfg.clone(), &run, true, stop(), &mut ()).unwrap();
+    assert_eq!(s.iterations_done, 3);
+    let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
+    let its: Vec<&str> = rows
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap())
+        .collect();
+    assert_eq!(its, ["2", "3"], "{rows}");
+    // a run without phase 2 is refused by name
+    let mut ppo = tiny_method("baseline");
+    ppo.runner.save_interval = 1;
+    let plain = dir.path().join("baseline");
+    train(ppo, &plain, false, stop(), &mut ()).unwrap();
+    let e = format!(
+        "{:#}",
+        restart_adaptation(&RunDir { root: plain }).unwrap_err()
+    );
+    assert!(e.contains("not an RMA run"), "{e}");
+}
+
+#[test]
 fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
     let dir = tempfile::tempdir().unwrap();
     let stop = || Arc::new(AtomicBool::new(false));

@@ -9,7 +9,7 @@ use clap::Args;
 
 use crate::config::{ActionStdReset, TrainConfig};
 use crate::learn::CriticKind;
-use crate::runner::{train_in, RunDir, World, LATEST};
+use crate::runner::{restart_adaptation, train_in, RunDir, World, LATEST};
 use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
 
 #[derive(Debug, Args)]
@@ -49,6 +49,11 @@ pub struct TrainArgs {
     /// Resume the run in this directory from its latest checkpoint.
     #[arg(long, conflicts_with = "run_dir")]
     pub resume: Option<PathBuf>,
+    /// RMA: discard the run's phase 2 (the adaptation module; its checkpoints are
+    /// moved to <run>/discarded-adaptation/) and train it again on the frozen
+    /// teacher from the end of phase 1.
+    #[arg(long, requires = "resume")]
+    pub restart_adaptation: bool,
     /// Also record the run for rerun into this .rrd file (metrics per iteration,
     /// evaluation episodes); no viewer needed.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["rerun_spawn", "rerun_connect"])]
@@ -95,6 +100,13 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
         (Some(dir), _) => {
             // what the run was started with; only runner settings may change
             let run = RunDir { root: dir.clone() };
+            if args.restart_adaptation {
+                let from = restart_adaptation(&run)?;
+                eprintln!(
+                    "{}: phase 2 restarts from iteration {from} on the frozen teacher (the discarded checkpoints are in discarded-adaptation/)",
+                    dir.display()
+                );
+            }
             let mut cfg = match run.resume_point() {
                 Ok((_, loaded)) => loaded.config,
                 // stopped before its first checkpoint: `train` starts it again

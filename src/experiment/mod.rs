@@ -238,8 +238,16 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         copy_atomic(&ckpt, &dst.join(LATEST))?;
         ship_files(&rd.root, &dst)?;
         let p = &loaded.progress;
+        let chosen = match selected_in(spec, r, &state) {
+            Some((_, it)) => format!(
+                "\n\nIts final policy is `{}`, the checkpoint of iteration {it}, chosen by the experiment's `[selection]` rule (`{}` lists every candidate).",
+                selection::SELECTED,
+                selection::SELECTION_CSV
+            ),
+            None => String::new(),
+        };
         let text = format!(
-            "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
+            "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.{chosen}\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
             label = r.label,
             config = r.config.display(),
             seed = r.seed,
@@ -274,6 +282,7 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
         let head = format!("[run {}/{n}] {} ({})", k + 1, r.label, state.dir.display());
         if state.done() {
             eprintln!("{head}: done ({} iterations), skipped", state.target);
+            choose_while_the_window_exists(spec, r)?;
             continue;
         }
         let cfg = run_config(spec, r)?;
@@ -300,8 +309,41 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
                 summary.iterations_done
             );
         }
+        choose_while_the_window_exists(spec, r)?;
     }
     Ok(())
+}
+
+/// A finished run's final policy is chosen as soon as training ends: the
+/// candidates are checkpoints of the run directory, which is not shipped, so a
+/// later session (a fresh clone) may no longer have them. A run whose window is
+/// gone is left to the evaluation, which refuses it naming the missing checkpoint.
+fn choose_while_the_window_exists(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<()> {
+    let Some(sel) = &spec.selection else {
+        return Ok(());
+    };
+    let state = run_state(spec, r)?;
+    if !state.done() || selected_in(spec, r, &state).is_some() {
+        return Ok(());
+    }
+    let rd = RunDir {
+        root: state.dir.clone(),
+    };
+    let window_complete = sel
+        .candidates(state.target)
+        .iter()
+        .all(|&it| rd.checkpoint(it).exists() || it == state.target);
+    if !window_complete {
+        eprintln!(
+            "  {}: its final policy cannot be chosen: the run directory lacks checkpoints of iterations {}-{} ([selection]); the evaluation will refuse it",
+            r.label,
+            sel.candidates(state.target)[0],
+            state.target
+        );
+        return Ok(());
+    }
+    eprintln!("  {}: choosing its final policy ([selection])", r.label);
+    choose_final_policy(spec, r, crate::config::worker_threads(spec.threads))
 }
 
 /// The newest readable checkpoint of run `r`: in its run directory, else its
@@ -356,39 +398,46 @@ pub fn selected_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<O
 /// reuses a stored choice made under the same rule, else tracks each candidate
 /// checkpoint on the validation episodes and stores the choice in the run directory.
 pub fn choose_final_policies(spec: &ExperimentSpec, threads: usize) -> Result<()> {
+    for r in &spec.runs {
+        choose_final_policy(spec, r, threads)?;
+    }
+    Ok(())
+}
+
+/// [`choose_final_policies`] for run `r` alone (nothing to do when it is not
+/// finished, has its choice already, or the experiment has no `[selection]`).
+fn choose_final_policy(spec: &ExperimentSpec, r: &spec::RunSpec, threads: usize) -> Result<()> {
     let Some(sel) = &spec.selection else {
         return Ok(());
     };
-    for r in &spec.runs {
-        let state = run_state(spec, r)?;
-        if !state.done() || selected_in(spec, r, &state).is_some() {
-            continue;
-        }
-        let chosen = selection::select(&state.dir, sel, state.target, |path| {
-            let p = NamedPolicy::load(&r.label, path)?;
-            let t = evaluate_tracking(
-                &p.learner,
-                &tracking_env(&p.env),
-                sel.episodes,
-                threads,
-                sel.seed,
-                ActionMode::Mean,
-            )?;
-            Ok(selection::Candidate {
-                iteration: 0,
-                fall_rate: t.fall_rate,
-                lin_vel_score: t.lin_vel_score,
-                yaw_rate_score: t.yaw_rate_score,
-            })
-        })
-        .with_context(|| format!("run {:?}", r.label))?;
-        eprintln!(
-            "  {}: final policy = iteration {} ({:.1}% falls on validation)",
-            r.label,
-            chosen.iteration,
-            100.0 * chosen.fall_rate
-        );
+    let state = run_state(spec, r)?;
+    if !state.done() || selected_in(spec, r, &state).is_some() {
+        return Ok(());
     }
+    let chosen = selection::select(&state.dir, sel, state.target, |path| {
+        let p = NamedPolicy::load(&r.label, path)?;
+        let t = evaluate_tracking(
+            &p.learner,
+            &tracking_env(&p.env),
+            sel.episodes,
+            threads,
+            sel.seed,
+            ActionMode::Mean,
+        )?;
+        Ok(selection::Candidate {
+            iteration: 0,
+            fall_rate: t.fall_rate,
+            lin_vel_score: t.lin_vel_score,
+            yaw_rate_score: t.yaw_rate_score,
+        })
+    })
+    .with_context(|| format!("run {:?}", r.label))?;
+    eprintln!(
+        "  {}: final policy = iteration {} ({:.1}% falls on validation)",
+        r.label,
+        chosen.iteration,
+        100.0 * chosen.fall_rate
+    );
     Ok(())
 }
 

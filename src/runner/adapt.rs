@@ -10,11 +10,11 @@ use std::time::Instant;
 
 use std::sync::Arc;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use indicatif::ProgressBar;
 
 use super::metrics::{EpisodeStats, MetricsCsv};
-use super::train::{log_line, save_both, RunDir};
+use super::train::{log_line, save_both, RunDir, RunLock};
 use super::Progress;
 use crate::config::TrainConfig;
 use crate::env::{ObsGroup, Scene, VecEnv, ACT_DIM};
@@ -204,4 +204,107 @@ pub(super) fn adaptation_phase(
         }
     }
     Ok((false, last))
+}
+
+/// Rewinds the RMA run in `dir` to the end of phase 1 so that phase 2 trains again
+/// on the frozen teacher: a fresh adaptation module (and optimiser state), the
+/// teacher's weights unchanged, progress as `metrics.csv` logged it at phase 1's
+/// last iteration. The discarded phase-2 checkpoints are moved (not deleted) to
+/// `discarded-adaptation/`; `adaptation.csv` drops its rows when phase 2 resumes.
+/// Terrain levels are the checkpoint's (phase 2 moves them a little). Returns the
+/// iteration phase 2 restarts from.
+pub fn restart_adaptation(dir: &RunDir) -> Result<usize> {
+    let _lock = RunLock::acquire(&dir.root)?;
+    let (path, loaded) = dir.resume_point()?;
+    let cfg = loaded.config;
+    if cfg.learner.adaptation.is_none() {
+        bail!(
+            "{} is not an RMA run: its config has no [learner.adaptation], so it has no phase 2 to restart",
+            dir.root.display()
+        );
+    }
+    let phase1_end = cfg.runner.iterations;
+    if loaded.progress.iteration <= phase1_end {
+        bail!(
+            "{} is at iteration {} and its phase 2 starts after {phase1_end}: nothing to restart",
+            path.display(),
+            loaded.progress.iteration
+        );
+    }
+    let (wall_s, total_env_steps) = metrics_at(&dir.metrics(), phase1_end)?;
+    let mut fresh = Learner::with_layout(
+        &cfg.env.obs_layout(),
+        ACT_DIM,
+        &cfg.learner,
+        cfg.runner.seed,
+    )?;
+    let teacher: Vec<_> = loaded
+        .learner
+        .state()
+        .into_iter()
+        .filter(|t| !t.name.contains("adapt"))
+        .collect();
+    fresh
+        .load_state_keeping(&teacher, |name| name.contains("adapt"))
+        .context("carrying the teacher over")?;
+    let progress = Progress {
+        iteration: phase1_end,
+        total_env_steps,
+        wall_s,
+        ..loaded.progress
+    };
+    let discarded = dir.root.join("discarded-adaptation");
+    std::fs::create_dir_all(&discarded)
+        .with_context(|| format!("creating {}", discarded.display()))?;
+    let old = discarded.join(format!(
+        "latest-at-{}.safetensors",
+        loaded.progress.iteration
+    ));
+    std::fs::copy(&path, &old).with_context(|| format!("keeping {}", old.display()))?;
+    for (it, p) in dir.checkpoints_by_iteration() {
+        if it > phase1_end {
+            let to = discarded.join(p.file_name().context("checkpoint without a name")?);
+            std::fs::rename(&p, &to).with_context(|| format!("moving {}", p.display()))?;
+        }
+    }
+    save_both(dir, &fresh, &cfg, &progress)?;
+    Ok(phase1_end)
+}
+
+/// `wall_s` and `total_env_steps` of `metrics.csv`'s row for `iteration`.
+fn metrics_at(path: &std::path::Path, iteration: usize) -> Result<(f64, u64)> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = |name: &str| {
+        head.iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{} has no column {name}", path.display()))
+    };
+    let (it_col, wall_col, steps_col) =
+        (col("iteration")?, col("wall_s")?, col("total_env_steps")?);
+    for line in lines {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.get(it_col).and_then(|s| s.parse::<usize>().ok()) == Some(iteration) {
+            let parse = |c: usize| f.get(c).copied().unwrap_or("");
+            let wall_s = parse(wall_col).parse().with_context(|| {
+                format!(
+                    "{}: bad wall_s in the row of iteration {iteration}",
+                    path.display()
+                )
+            })?;
+            let steps = parse(steps_col).parse().with_context(|| {
+                format!(
+                    "{}: bad total_env_steps in the row of iteration {iteration}",
+                    path.display()
+                )
+            })?;
+            return Ok((wall_s, steps));
+        }
+    }
+    bail!(
+        "{} has no row for iteration {iteration} (the end of phase 1)",
+        path.display()
+    )
 }
