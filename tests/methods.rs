@@ -371,16 +371,32 @@ fn a_network_reading_a_group_the_env_does_not_write_is_refused_by_name() {
     );
 }
 
-#[test]
-fn rma_resumes_inside_phase_two_without_repeating_rows() {
+/// A tiny RMA run trained through `adapt_iterations` of phase 2, a checkpoint at
+/// every iteration: its config, directory and the temp dir holding it.
+fn trained_tiny_rma(
+    adapt_iterations: usize,
+) -> (TrainConfig, std::path::PathBuf, tempfile::TempDir) {
     let mut cfg = tiny_method("rma");
-    cfg.learner.adaptation.as_mut().unwrap().iterations = 3;
+    cfg.learner.adaptation.as_mut().unwrap().iterations = adapt_iterations;
     cfg.runner.save_interval = 1;
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("rma");
+    let s = train(
+        cfg.clone(),
+        &run,
+        false,
+        Arc::new(AtomicBool::new(false)),
+        &mut (),
+    )
+    .unwrap();
+    assert_eq!(s.iterations_done, 1 + adapt_iterations);
+    (cfg, run, dir)
+}
+
+#[test]
+fn rma_resumes_inside_phase_two_without_repeating_rows() {
+    let (cfg, run, _dir) = trained_tiny_rma(3);
     let stop = || Arc::new(AtomicBool::new(false));
-    let s = train(cfg.clone(), &run, false, stop(), &mut ()).unwrap();
-    assert_eq!(s.iterations_done, 4);
     // lose the last two checkpoints: the newest left is phase 2's first iteration
     for it in [3, 4] {
         std::fs::remove_file(run.join(format!("checkpoints/model_{it:06}.safetensors"))).unwrap();
@@ -418,14 +434,8 @@ fn rma_resumes_inside_phase_two_without_repeating_rows() {
 #[test]
 fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     use rall::runner::{restart_adaptation, RunDir};
-    let mut cfg = tiny_method("rma");
-    cfg.learner.adaptation.as_mut().unwrap().iterations = 2;
-    cfg.runner.save_interval = 1;
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("rma");
+    let (cfg, run, dir) = trained_tiny_rma(2);
     let stop = || Arc::new(AtomicBool::new(false));
-    let s = train(cfg.clone(), &run, false, stop(), &mut ()).unwrap();
-    assert_eq!(s.iterations_done, 3);
     let before = load_policy(&run.join("latest.safetensors")).unwrap();
     let rd = RunDir { root: run.clone() };
     assert_eq!(restart_adaptation(&rd).unwrap(), 1);
@@ -457,7 +467,7 @@ fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     let e = format!("{:#}", restart_adaptation(&rd).unwrap_err());
     assert!(e.contains("nothing to restart"), "{e}");
     // phase 2 trains again, its log without the discarded rows
-    let s = train(cfg.clone(), &run, true, stop(), &mut ()).unwrap();
+    let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
     assert_eq!(s.iterations_done, 3);
     let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
     let its: Vec<&str> = rows
