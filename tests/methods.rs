@@ -393,6 +393,15 @@ fn trained_tiny_rma(
     (cfg, run, dir)
 }
 
+/// The iterations `adaptation.csv` logs, in order (its first column).
+fn adaptation_iterations(run: &std::path::Path) -> Vec<String> {
+    let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
+    rows.lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().to_string())
+        .collect()
+}
+
 #[test]
 fn rma_resumes_inside_phase_two_without_repeating_rows() {
     let (cfg, run, _dir) = trained_tiny_rma(3);
@@ -404,13 +413,7 @@ fn rma_resumes_inside_phase_two_without_repeating_rows() {
     std::fs::remove_file(run.join("latest.safetensors")).unwrap();
     let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
     assert_eq!(s.iterations_done, 4);
-    let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
-    let its: Vec<&str> = rows
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').next().unwrap())
-        .collect();
-    assert_eq!(its, ["2", "3", "4"], "{rows}");
+    assert_eq!(adaptation_iterations(&run), ["2", "3", "4"]);
     let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
     assert_eq!(
         metrics.lines().count(),
@@ -469,13 +472,7 @@ fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     // phase 2 trains again, its log without the discarded rows
     let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
     assert_eq!(s.iterations_done, 3);
-    let rows = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
-    let its: Vec<&str> = rows
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').next().unwrap())
-        .collect();
-    assert_eq!(its, ["2", "3"], "{rows}");
+    assert_eq!(adaptation_iterations(&run), ["2", "3"]);
     // a run without phase 2 is refused by name
     let mut ppo = tiny_method("baseline");
     ppo.runner.save_interval = 1;
