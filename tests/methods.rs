@@ -13,7 +13,7 @@ use rall::env::privileged::{EXTRINSICS_DIM, PRIVILEGED_DIM};
 use rall::env::terrain::TerrainKind;
 use rall::env::{build_scene, Env, EnvConfig, ObsGroup, OBS_DIM};
 use rall::learn::{load_checkpoint, save_checkpoint, LatentSource, Learner};
-use rall::runner::{load_policy, save_policy, train, Progress};
+use rall::runner::{load_policy, save_policy, train, Progress, TrainSummary};
 
 const METHODS: [&str; 7] = [
     "baseline",
@@ -24,6 +24,11 @@ const METHODS: [&str; 7] = [
     "rall",
     "rall-eta1",
 ];
+
+/// `rall train` on `run` (resuming it when `resume`), never asked to stop, no observer.
+fn train_to_end(cfg: TrainConfig, run: &Path, resume: bool) -> anyhow::Result<TrainSummary> {
+    train(cfg, run, resume, Arc::new(AtomicBool::new(false)), &mut ())
+}
 
 fn repo(p: &str) -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -272,14 +277,7 @@ fn every_method_config_trains_one_iteration() {
         let cfg = tiny_method(m);
         let dir = tempfile::tempdir().unwrap();
         let run = dir.path().join(m);
-        let s = train(
-            cfg.clone(),
-            &run,
-            false,
-            Arc::new(AtomicBool::new(false)),
-            &mut (),
-        )
-        .unwrap_or_else(|e| panic!("{m}: {e:#}"));
+        let s = train_to_end(cfg.clone(), &run, false).unwrap_or_else(|e| panic!("{m}: {e:#}"));
         let rma = cfg.learner.adaptation.is_some();
         assert_eq!(s.iterations_done, if rma { 2 } else { 1 }, "{m}");
         let rows = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
@@ -381,14 +379,7 @@ fn trained_tiny_rma(
     cfg.runner.save_interval = 1;
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("rma");
-    let s = train(
-        cfg.clone(),
-        &run,
-        false,
-        Arc::new(AtomicBool::new(false)),
-        &mut (),
-    )
-    .unwrap();
+    let s = train_to_end(cfg.clone(), &run, false).unwrap();
     assert_eq!(s.iterations_done, 1 + adapt_iterations);
     (cfg, run, dir)
 }
@@ -405,13 +396,12 @@ fn adaptation_iterations(run: &std::path::Path) -> Vec<String> {
 #[test]
 fn rma_resumes_inside_phase_two_without_repeating_rows() {
     let (cfg, run, _dir) = trained_tiny_rma(3);
-    let stop = || Arc::new(AtomicBool::new(false));
     // lose the last two checkpoints: the newest left is phase 2's first iteration
     for it in [3, 4] {
         std::fs::remove_file(run.join(format!("checkpoints/model_{it:06}.safetensors"))).unwrap();
     }
     std::fs::remove_file(run.join("latest.safetensors")).unwrap();
-    let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
+    let s = train_to_end(cfg, &run, true).unwrap();
     assert_eq!(s.iterations_done, 4);
     assert_eq!(adaptation_iterations(&run), ["2", "3", "4"]);
     let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
@@ -438,7 +428,6 @@ fn rma_resumes_inside_phase_two_without_repeating_rows() {
 fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     use rall::runner::{restart_adaptation, RunDir};
     let (cfg, run, dir) = trained_tiny_rma(2);
-    let stop = || Arc::new(AtomicBool::new(false));
     let before = load_policy(&run.join("latest.safetensors")).unwrap();
     let rd = RunDir { root: run.clone() };
     assert_eq!(restart_adaptation(&rd).unwrap(), 1);
@@ -470,14 +459,14 @@ fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     let e = format!("{:#}", restart_adaptation(&rd).unwrap_err());
     assert!(e.contains("nothing to restart"), "{e}");
     // phase 2 trains again, its log without the discarded rows
-    let s = train(cfg, &run, true, stop(), &mut ()).unwrap();
+    let s = train_to_end(cfg, &run, true).unwrap();
     assert_eq!(s.iterations_done, 3);
     assert_eq!(adaptation_iterations(&run), ["2", "3"]);
     // a run without phase 2 is refused by name
     let mut ppo = tiny_method("baseline");
     ppo.runner.save_interval = 1;
     let plain = dir.path().join("baseline");
-    train(ppo, &plain, false, stop(), &mut ()).unwrap();
+    train_to_end(ppo, &plain, false).unwrap();
     let e = format!(
         "{:#}",
         restart_adaptation(&RunDir { root: plain }).unwrap_err()
@@ -488,12 +477,11 @@ fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
 #[test]
 fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
     let dir = tempfile::tempdir().unwrap();
-    let stop = || Arc::new(AtomicBool::new(false));
     let mut trained = Vec::new();
     for m in ["rall-eta1", "rma"] {
         let mut cfg = tiny_method(m);
         cfg.env.terrain.kind = TerrainKind::Flat;
-        let s = train(cfg, &dir.path().join(m), false, stop(), &mut ()).unwrap();
+        let s = train_to_end(cfg, &dir.path().join(m), false).unwrap();
         trained.push(s.last_checkpoint);
     }
     let risky = rall::eval::NamedPolicy::load("eta1", &trained[0]).unwrap();
