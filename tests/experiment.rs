@@ -502,3 +502,141 @@ fn choosing_the_final_policy_on_the_tracking_episodes_is_refused() {
     let e = refusal(dir.path(), &(spec_text(dir.path(), "results") + rule));
     assert!(e.contains("other episodes"), "{e}");
 }
+
+#[test]
+fn an_rma_run_trains_phase_two_on_the_teacher_its_rule_chose_and_ships_the_choice() {
+    use rall::runner::load_policy;
+    let dir = tempfile::tempdir().unwrap();
+    let mut rma = common::tiny_method("rma");
+    rma.learner.adaptation.as_mut().unwrap().iterations = 2;
+    let config = dir.path().join("rma.toml");
+    std::fs::write(&config, rma.to_toml()).unwrap();
+    let file = dir.path().join("rma-slice.toml");
+    std::fs::write(
+        &file,
+        format!(
+            r#"
+name = "rma-slice"
+runs_dir = "{runs}"
+results_dir = "{results}"
+shipped_dir = "{shipped}"
+threads = 2
+meta = []
+
+[[run]]
+name = "rma"
+label = "RMA"
+config = "{config}"
+seed = 1
+iterations = 3
+
+[tracking]
+episodes = 4
+seed = 7
+
+[selection]
+window = 2
+every = 1
+episodes = 4
+seed = 8
+
+[ttf]
+methods = ["RMA"]
+seeds = 1
+repeats = 1
+loads = ["ball"]
+
+[platform]
+methods = ["RMA"]
+heights_m = [0.40]
+seeds = 1
+repeats = 1
+
+[race]
+methods = ["RMA"]
+agents = 1
+episodes = 1
+"#,
+            runs = dir.path().join("runs").display(),
+            results = dir.path().join("results").display(),
+            shipped = dir.path().join("shipped").display(),
+            config = config.display(),
+        ),
+    )
+    .unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
+    let run = spec.run_dir(&spec.runs[0]);
+    // the teacher: chosen among phase 1's last two checkpoints, the one that falls least
+    let csv = std::fs::read_to_string(run.join("teacher-selection.csv")).unwrap();
+    assert!(csv.starts_with("# RMA teacher"), "{csv}");
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(2)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(
+        rows.iter().map(|c| c[0]).collect::<Vec<_>>(),
+        ["2", "3"],
+        "{csv}"
+    );
+    let chosen: Vec<_> = rows.iter().filter(|c| c[4] == "1").collect();
+    assert_eq!(chosen.len(), 1, "{csv}");
+    let least = rows
+        .iter()
+        .map(|c| c[1].parse::<f64>().unwrap())
+        .fold(f64::MAX, f64::min);
+    assert_eq!(chosen[0][1].parse::<f64>().unwrap(), least, "{csv}");
+    let teacher_it: usize = chosen[0][0].parse().unwrap();
+    // phase 2 ran on that teacher: every teacher tensor of the student is the chosen one's
+    let teacher =
+        load_policy(&run.join(format!("checkpoints/model_{teacher_it:06}.safetensors"))).unwrap();
+    let student = load_policy(&run.join("latest.safetensors")).unwrap();
+    assert_eq!(student.progress.iteration, 5);
+    let frozen = |p: &rall::runner::LoadedPolicy| -> Vec<_> {
+        p.learner
+            .state()
+            .into_iter()
+            .filter(|t| !t.name.contains("adapt"))
+            .filter(|t| t.name.starts_with("actor.") || t.name.starts_with("critic."))
+            .map(|t| (t.name, t.data))
+            .collect()
+    };
+    let (s, t) = (frozen(&student), frozen(&teacher));
+    assert!(!s.is_empty());
+    let differ: Vec<_> = s
+        .iter()
+        .zip(&t)
+        .filter(|(a, b)| a != b)
+        .map(|(a, b)| (&a.0, &b.0))
+        .collect();
+    assert!(differ.is_empty() && s.len() == t.len(), "{differ:?}");
+    // phase 1's numbered checkpoints are left as trained (the choice is a candidate again)
+    let last_teacher = load_policy(&run.join("checkpoints/model_000003.safetensors")).unwrap();
+    assert_eq!(last_teacher.progress.iteration, 3);
+    // phase 2's log starts where phase 1 ended; the final policy is chosen among phase 2's
+    let adaptation = std::fs::read_to_string(run.join("adaptation.csv")).unwrap();
+    let logged: Vec<&str> = adaptation
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap())
+        .collect();
+    assert_eq!(logged, ["4", "5"]);
+    let finals = std::fs::read_to_string(run.join("selection.csv")).unwrap();
+    assert!(finals.starts_with("# final policy"), "{finals}");
+    assert!(
+        finals.contains("\n4,") && finals.contains("\n5,"),
+        "{finals}"
+    );
+    // the teacher's choice ships with the run
+    ship_all(&spec, &file).unwrap();
+    assert_eq!(
+        std::fs::read_to_string(dir.path().join("shipped/rma-s1/teacher-selection.csv")).unwrap(),
+        csv
+    );
+    let readme = std::fs::read_to_string(dir.path().join("shipped/rma-s1/README.md")).unwrap();
+    assert!(
+        readme.contains(&format!("the teacher of iteration {teacher_it}")),
+        "{readme}"
+    );
+}

@@ -249,32 +249,11 @@ fn a_student_fed_the_true_latent_acts_exactly_as_the_teacher() {
 }
 
 /// Each method config on flat ground, tiny, for tests.
-fn tiny_method(method: &str) -> TrainConfig {
-    let mut c = TrainConfig::from_toml_file(&repo(&format!("configs/{method}.toml"))).unwrap();
-    let tiny = common::tiny_config(c.learner.critic);
-    c.env.robot_mjcf = tiny.env.robot_mjcf.clone();
-    c.env.episode.length_s = 0.5;
-    c.env.observation.history_steps = 5;
-    c.env.terrain.num_levels = 2;
-    c.env.terrain.num_types = 2;
-    c.env.terrain.max_init_level = 1;
-    c.learner.actor_hidden = tiny.learner.actor_hidden.clone();
-    c.learner.critic_hidden = tiny.learner.critic_hidden.clone();
-    c.learner.num_taus = 8;
-    c.learner.num_target_taus = 8;
-    c.learner.num_value_taus = 8;
-    if let Some(a) = &mut c.learner.adaptation {
-        a.iterations = 1;
-    }
-    c.runner = tiny.runner.clone();
-    c.runner.iterations = 1;
-    c
-}
 
 #[test]
 fn every_method_config_trains_one_iteration() {
     for m in METHODS {
-        let cfg = tiny_method(m);
+        let cfg = common::tiny_method(m);
         let dir = tempfile::tempdir().unwrap();
         let run = dir.path().join(m);
         let s = train_to_end(cfg.clone(), &run, false).unwrap_or_else(|e| panic!("{m}: {e:#}"));
@@ -307,7 +286,7 @@ fn every_method_config_trains_one_iteration() {
 fn checkpoints_of_every_method_round_trip_and_other_groups_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     for m in METHODS {
-        let cfg = tiny_method(m);
+        let cfg = common::tiny_method(m);
         let layout = cfg.env.obs_layout();
         let learner = Learner::with_layout(&layout, 12, &cfg.learner, 3).unwrap();
         let path = dir.path().join(format!("{m}.safetensors"));
@@ -374,7 +353,7 @@ fn a_network_reading_a_group_the_env_does_not_write_is_refused_by_name() {
 fn trained_tiny_rma(
     adapt_iterations: usize,
 ) -> (TrainConfig, std::path::PathBuf, tempfile::TempDir) {
-    let mut cfg = tiny_method("rma");
+    let mut cfg = common::tiny_method("rma");
     cfg.learner.adaptation.as_mut().unwrap().iterations = adapt_iterations;
     cfg.runner.save_interval = 1;
     let dir = tempfile::tempdir().unwrap();
@@ -463,7 +442,7 @@ fn rma_phase_two_restarts_on_the_frozen_teacher_keeping_what_it_discards() {
     assert_eq!(s.iterations_done, 3);
     assert_eq!(adaptation_iterations(&run), ["2", "3"]);
     // a run without phase 2 is refused by name
-    let mut ppo = tiny_method("baseline");
+    let mut ppo = common::tiny_method("baseline");
     ppo.runner.save_interval = 1;
     let plain = dir.path().join("baseline");
     train_to_end(ppo, &plain, false).unwrap();
@@ -479,7 +458,7 @@ fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
     let dir = tempfile::tempdir().unwrap();
     let mut trained = Vec::new();
     for m in ["rall-eta1", "rma"] {
-        let mut cfg = tiny_method(m);
+        let mut cfg = common::tiny_method(m);
         cfg.env.terrain.kind = TerrainKind::Flat;
         let s = train_to_end(cfg, &dir.path().join(m), false).unwrap();
         trained.push(s.last_checkpoint);
@@ -522,4 +501,58 @@ fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
         log.safe_fraction
     );
     assert_eq!(m.episodes, 2);
+}
+
+#[test]
+fn a_chosen_teacher_is_installed_only_between_the_two_phases() {
+    use rall::runner::{install_teacher, PhaseOneOnly, RunDir};
+    let mut cfg = common::tiny_method("rma");
+    cfg.runner.iterations = 2;
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("rma");
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = train(cfg.clone(), &run, false, stop, &mut PhaseOneOnly(&mut ())).unwrap();
+    assert_eq!((s.iterations_done, s.interrupted), (2, false));
+    let at_end = load_policy(&run.join("latest.safetensors")).unwrap();
+    assert_eq!(at_end.learner.latent_source(), LatentSource::Encoder);
+    let tensors = |p: &rall::runner::LoadedPolicy| -> Vec<(String, Vec<f32>)> {
+        p.learner
+            .state()
+            .into_iter()
+            .map(|t| (t.name, t.data))
+            .collect()
+    };
+    // the teacher of iteration 1 goes into the run standing at iteration 2
+    let rd = RunDir { root: run.clone() };
+    let first = run.join("checkpoints/model_000001.safetensors");
+    let one = load_policy(&first).unwrap();
+    assert_ne!(tensors(&one), tensors(&at_end));
+    for _ in 0..2 {
+        install_teacher(&rd, &first).unwrap();
+        let installed = load_policy(&run.join("latest.safetensors")).unwrap();
+        assert_eq!(installed.progress.iteration, 2);
+        assert_eq!(tensors(&installed), tensors(&one));
+    }
+    // the numbered checkpoint of iteration 2 is left as trained
+    let two = load_policy(&run.join("checkpoints/model_000002.safetensors")).unwrap();
+    assert_eq!(tensors(&two), tensors(&at_end));
+    // phase 2 runs on it; once it has, no teacher can be installed
+    let s = train_to_end(cfg, &run, true).unwrap();
+    assert_eq!(s.iterations_done, 3);
+    let e = format!("{:#}", install_teacher(&rd, &first).unwrap_err());
+    assert!(e.contains("not at the end of its phase 1"), "{e}");
+    // a run without phase 2 has no teacher
+    let plain = dir.path().join("baseline");
+    train_to_end(common::tiny_method("baseline"), &plain, false).unwrap();
+    let e = format!(
+        "{:#}",
+        install_teacher(
+            &RunDir {
+                root: plain.clone()
+            },
+            &plain.join("latest.safetensors")
+        )
+        .unwrap_err()
+    );
+    assert!(e.contains("not an RMA run"), "{e}");
 }

@@ -9,7 +9,9 @@ use clap::Args;
 
 use crate::config::{ActionStdReset, TrainConfig};
 use crate::learn::CriticKind;
-use crate::runner::{restart_adaptation, train_in, RunDir, World, LATEST};
+use crate::runner::{
+    restart_adaptation, train_in, IterationObserver, PhaseOneOnly, RunDir, World, LATEST,
+};
 use crate::viz::{RerunTarget, TrainRecorder, TrainRecordingOptions};
 
 #[derive(Debug, Args)]
@@ -51,9 +53,16 @@ pub struct TrainArgs {
     pub resume: Option<PathBuf>,
     /// RMA: discard the run's phase 2 (the adaptation module; its checkpoints are
     /// moved to <run>/discarded-adaptation/) and train it again on the frozen
-    /// teacher from the end of phase 1.
+    /// teacher from the end of phase 1. With a larger --iterations, the teacher
+    /// first trains on (the checkpoint keeps its weights and optimiser state; the
+    /// episodes start afresh).
     #[arg(long, requires = "resume")]
     pub restart_adaptation: bool,
+    /// RMA: stop when phase 1 (the teacher) ends, before phase 2; resuming the run
+    /// later trains phase 2 (`rall experiment` chooses the teacher there). No
+    /// effect on a run without phase 2.
+    #[arg(long)]
+    pub stop_after_phase_one: bool,
     /// Also record the run for rerun into this .rrd file (metrics per iteration,
     /// evaluation episodes); no viewer needed.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["rerun_spawn", "rerun_connect"])]
@@ -102,8 +111,14 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
             let run = RunDir { root: dir.clone() };
             if args.restart_adaptation {
                 let from = restart_adaptation(&run)?;
+                let next = match args.iterations {
+                    Some(n) if n > from => {
+                        format!("the teacher trains on from iteration {from} to {n} (phase 1), then phase 2 starts afresh")
+                    }
+                    _ => format!("phase 2 restarts from iteration {from} on the frozen teacher"),
+                };
                 eprintln!(
-                    "{}: phase 2 restarts from iteration {from} on the frozen teacher (the discarded checkpoints are in discarded-adaptation/)",
+                    "{}: {next} (the discarded checkpoints are in discarded-adaptation/)",
                     dir.display()
                 );
             }
@@ -162,8 +177,23 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
         args.rerun_spawn,
         args.rerun_connect.as_deref(),
     );
+    let phase_one_only = args.stop_after_phase_one;
+    let observed = |observer: &mut dyn IterationObserver, cfg, stop| {
+        if phase_one_only {
+            train_in(
+                world,
+                cfg,
+                &run_dir,
+                resume,
+                stop,
+                &mut PhaseOneOnly(observer),
+            )
+        } else {
+            train_in(world, cfg, &run_dir, resume, stop, observer)
+        }
+    };
     let summary = match target.filter(|_| world.is_root()) {
-        None => train_in(world, cfg, &run_dir, resume, stop, &mut ())?,
+        None => observed(&mut (), cfg, stop)?,
         Some(target) => {
             // A resumed run evaluates in its own stored env.
             let stored = run_dir.join("config.toml");
@@ -178,7 +208,7 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
             };
             let mut recorder =
                 TrainRecorder::open(&target, &run_dir.display().to_string(), &run_cfg, opts)?;
-            let summary = train_in(world, cfg, &run_dir, resume, stop, &mut recorder)?;
+            let summary = observed(&mut recorder, cfg, stop)?;
             recorder.finish()?;
             if let RerunTarget::Save(path) = &target {
                 println!(

@@ -25,7 +25,7 @@ use crate::eval::{
     with_randomization, ActionMode, GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions,
     RaceOptions, ScenarioParams, TtfOptions,
 };
-use crate::runner::{train, Progress, RunDir, LATEST};
+use crate::runner::{install_teacher, train, PhaseOneOnly, Progress, RunDir, TrainSummary, LATEST};
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use spec::ExperimentSpec;
 use spec::MetaSpec;
@@ -154,10 +154,11 @@ fn value_differences(at: &str, a: &toml::Value, b: &toml::Value, out: &mut Vec<S
 }
 
 /// Files of a run that travel with its checkpoint.
-const SHIPPED_FILES: [&str; 5] = [
+const SHIPPED_FILES: [&str; 6] = [
     "config.toml",
     "metrics.csv",
     "adaptation.csv",
+    selection::TEACHER_SELECTION_CSV,
     selection::SELECTION_CSV,
     selection::SELECTED,
 ];
@@ -246,6 +247,18 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             ),
             None => String::new(),
         };
+        let teacher = spec
+            .selection
+            .as_ref()
+            .and_then(|sel| selection::stored_teacher(&rd.root, sel, r.iterations))
+            .map(|it| {
+                format!(
+                    " Its phase 2 trained on the teacher of iteration {it}, chosen by the same rule (`{}`).",
+                    selection::TEACHER_SELECTION_CSV
+                )
+            })
+            .unwrap_or_default();
+        let chosen = chosen + &teacher;
         let text = format!(
             "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.{chosen}\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
             label = r.label,
@@ -300,8 +313,13 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
             }
             None => eprintln!("{head}: starting ({} iterations)", state.target),
         }
-        let summary = train(cfg, &state.dir, resume, stop.clone(), &mut ())
-            .with_context(|| format!("training run {:?}", r.label))?;
+        let summary = match &spec.selection {
+            Some(sel) if cfg.learner.adaptation.is_some() => {
+                train_rma(spec, r, sel, cfg, resume, stop.clone())
+            }
+            _ => train(cfg, &state.dir, resume, stop.clone(), &mut ()),
+        }
+        .with_context(|| format!("training run {:?}", r.label))?;
         if summary.interrupted {
             bail!(
                 "interrupted during run {:?} at iteration {}; the same command continues it",
@@ -312,6 +330,100 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
         choose_while_the_window_exists(spec, r)?;
     }
     Ok(())
+}
+
+/// RMA under `[selection]`: phase 1, then its teacher chosen by the same rule among
+/// phase 1's last checkpoints and installed, then phase 2 on that teacher. A run
+/// stopped at the end of phase 1 chooses (or reuses its stored choice) and installs
+/// again: installing the same teacher twice changes nothing.
+fn train_rma(
+    spec: &ExperimentSpec,
+    r: &spec::RunSpec,
+    sel: &selection::SelectionSpec,
+    cfg: TrainConfig,
+    resume: bool,
+    stop: Arc<AtomicBool>,
+) -> Result<TrainSummary> {
+    let dir = spec.run_dir(r);
+    let phase1_end = cfg.runner.iterations;
+    let iteration = |resume: bool| -> Result<usize> {
+        Ok(match resume {
+            true => run_state(spec, r)?.progress.map_or(0, |p| p.iteration),
+            false => 0,
+        })
+    };
+    if iteration(resume)? < phase1_end {
+        let s = train(
+            cfg.clone(),
+            &dir,
+            resume,
+            stop.clone(),
+            &mut PhaseOneOnly(&mut ()),
+        )?;
+        if s.interrupted {
+            return Ok(s);
+        }
+    }
+    if iteration(true)? == phase1_end {
+        let rd = RunDir { root: dir.clone() };
+        let chosen = match selection::stored_teacher(&dir, sel, phase1_end) {
+            Some(it) => it,
+            None => {
+                eprintln!(
+                    "  {}: choosing its teacher ([selection] over phase 1's checkpoints)",
+                    r.label
+                );
+                let threads = crate::config::worker_threads(spec.threads);
+                let c = selection::select_as(
+                    &dir,
+                    sel,
+                    phase1_end,
+                    selection::Choice::Teacher,
+                    validation(sel, &r.label, threads),
+                )?;
+                c.iteration
+            }
+        };
+        let file = selection::checkpoint_of(&dir, chosen, phase1_end, selection::Choice::Teacher)
+            .with_context(|| {
+            format!(
+                "{}: the chosen teacher's checkpoint (iteration {chosen}) is gone",
+                dir.display()
+            )
+        })?;
+        install_teacher(&rd, &file)?;
+        eprintln!(
+            "  {}: phase 2 trains on the teacher of iteration {chosen}",
+            r.label
+        );
+    }
+    train(cfg, &dir, true, stop, &mut ())
+}
+
+/// A candidate's validation: `[selection]`'s tracking episodes (own randomisation,
+/// mean actions) of the checkpoint at a path.
+fn validation<'a>(
+    sel: &'a selection::SelectionSpec,
+    label: &'a str,
+    threads: usize,
+) -> impl FnMut(&Path) -> Result<selection::Candidate> + 'a {
+    move |path| {
+        let p = NamedPolicy::load(label, path)?;
+        let t = evaluate_tracking(
+            &p.learner,
+            &tracking_env(&p.env),
+            sel.episodes,
+            threads,
+            sel.seed,
+            ActionMode::Mean,
+        )?;
+        Ok(selection::Candidate {
+            iteration: 0,
+            fall_rate: t.fall_rate,
+            lin_vel_score: t.lin_vel_score,
+            yaw_rate_score: t.yaw_rate_score,
+        })
+    }
 }
 
 /// A finished run's final policy is chosen as soon as training ends: the
@@ -414,23 +526,12 @@ fn choose_final_policy(spec: &ExperimentSpec, r: &spec::RunSpec, threads: usize)
     if !state.done() || selected_in(spec, r, &state).is_some() {
         return Ok(());
     }
-    let chosen = selection::select(&state.dir, sel, state.target, |path| {
-        let p = NamedPolicy::load(&r.label, path)?;
-        let t = evaluate_tracking(
-            &p.learner,
-            &tracking_env(&p.env),
-            sel.episodes,
-            threads,
-            sel.seed,
-            ActionMode::Mean,
-        )?;
-        Ok(selection::Candidate {
-            iteration: 0,
-            fall_rate: t.fall_rate,
-            lin_vel_score: t.lin_vel_score,
-            yaw_rate_score: t.yaw_rate_score,
-        })
-    })
+    let chosen = selection::select(
+        &state.dir,
+        sel,
+        state.target,
+        validation(sel, &r.label, threads),
+    )
     .with_context(|| format!("run {:?}", r.label))?;
     eprintln!(
         "  {}: final policy = iteration {} ({:.1}% falls on validation)",

@@ -2,7 +2,8 @@
 //! file (`[selection]`): among the checkpoints of the run's last `window` iterations
 //! (every `every`), the one that falls least on validation episodes, a seed the
 //! tracking table does not use; a tie goes to the later checkpoint. Without
-//! `[selection]` the final policy is the last checkpoint.
+//! `[selection]` the final policy is the last checkpoint. RMA's teacher is chosen
+//! by the same rule among phase 1's last checkpoints, before phase 2 starts.
 //!
 //! Why (policies/README.md, session 17): with the scalar critic a checkpoint's fall
 //! rate swings between 0% and 11% from one checkpoint to the next, 50 iterations
@@ -20,6 +21,32 @@ use crate::runner::RunDir;
 pub const SELECTED: &str = "selected.safetensors";
 /// Every candidate's validation figures and which was chosen.
 pub const SELECTION_CSV: &str = "selection.csv";
+/// RMA: the same for its teacher, chosen among phase 1's checkpoints before phase 2.
+pub const TEACHER_SELECTION_CSV: &str = "teacher-selection.csv";
+
+/// What a rule chooses: a run's final policy, or RMA's teacher between its phases
+/// (the same rule, so that RMA's teacher is not the one draw of the campaign that
+/// nobody chose: the student can only be as good as the teacher it imitates).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Choice {
+    FinalPolicy,
+    Teacher,
+}
+
+impl Choice {
+    fn csv(self) -> &'static str {
+        match self {
+            Choice::FinalPolicy => SELECTION_CSV,
+            Choice::Teacher => TEACHER_SELECTION_CSV,
+        }
+    }
+    fn what(self) -> &'static str {
+        match self {
+            Choice::FinalPolicy => "final policy",
+            Choice::Teacher => "RMA teacher (phase 1, before phase 2 starts)",
+        }
+    }
+}
 
 /// `[selection]` of the experiment file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -68,9 +95,10 @@ impl SelectionSpec {
     }
 
     /// First line of `selection.csv`: a stored choice is reused only under the same rule.
-    fn header(&self, target: usize) -> String {
+    fn header(&self, target: usize, choice: Choice) -> String {
         format!(
-            "# final policy: fewest falls over {} validation episodes (seed {}) among the checkpoints of iterations {}-{} every {}",
+            "# {}: fewest falls over {} validation episodes (seed {}) among the checkpoints of iterations {}-{} every {}",
+            choice.what(),
             self.episodes,
             self.seed,
             target.saturating_sub(self.window) + 1,
@@ -85,8 +113,10 @@ pub fn choose(c: &[Candidate]) -> Option<usize> {
     (0..c.len()).min_by(|&a, &b| c[a].fall_rate.total_cmp(&c[b].fall_rate).then(b.cmp(&a)))
 }
 
-/// The checkpoint file of iteration `it` in run directory `dir`.
-fn checkpoint_of(dir: &Path, it: usize, target: usize) -> Option<PathBuf> {
+/// The checkpoint file of iteration `it` in run directory `dir` (a final policy's
+/// last candidate may be `latest` alone; a teacher's never: `latest` is where the
+/// chosen teacher is installed).
+pub fn checkpoint_of(dir: &Path, it: usize, target: usize, choice: Choice) -> Option<PathBuf> {
     let rd = RunDir {
         root: dir.to_path_buf(),
     };
@@ -94,27 +124,44 @@ fn checkpoint_of(dir: &Path, it: usize, target: usize) -> Option<PathBuf> {
     if numbered.exists() {
         return Some(numbered);
     }
-    (it == target && rd.latest().exists()).then(|| rd.latest())
+    (choice == Choice::FinalPolicy && it == target && rd.latest().exists()).then(|| rd.latest())
 }
 
-/// The stored choice in `dir` (its file and iteration), if it was made under this
-/// rule and budget.
-pub fn stored(dir: &Path, spec: &SelectionSpec, target: usize) -> Option<(PathBuf, usize)> {
-    let text = std::fs::read_to_string(dir.join(SELECTION_CSV)).ok()?;
+/// The iteration chosen in `dir`'s stored choice, if it was made under this rule
+/// and budget.
+fn stored_iteration(
+    dir: &Path,
+    spec: &SelectionSpec,
+    target: usize,
+    choice: Choice,
+) -> Option<usize> {
+    let text = std::fs::read_to_string(dir.join(choice.csv())).ok()?;
     let mut lines = text.lines();
-    if lines.next() != Some(spec.header(target).as_str()) {
+    if lines.next() != Some(spec.header(target, choice).as_str()) {
         return None;
     }
     // the row whose `chosen` column is 1
-    let iteration = lines
+    lines
         .skip(1)
         .find(|l| l.ends_with(",1"))?
         .split(',')
         .next()?
         .parse()
-        .ok()?;
+        .ok()
+}
+
+/// The stored choice in `dir` (its file and iteration), if it was made under this
+/// rule and budget.
+pub fn stored(dir: &Path, spec: &SelectionSpec, target: usize) -> Option<(PathBuf, usize)> {
+    let iteration = stored_iteration(dir, spec, target, Choice::FinalPolicy)?;
     let selected = dir.join(SELECTED);
     selected.exists().then_some((selected, iteration))
+}
+
+/// The stored teacher choice of the RMA run in `dir` whose phase 1 ends at
+/// `phase1_end`, if it was made under this rule.
+pub fn stored_teacher(dir: &Path, spec: &SelectionSpec, phase1_end: usize) -> Option<usize> {
+    stored_iteration(dir, spec, phase1_end, Choice::Teacher)
 }
 
 /// Chooses run `dir`'s final policy (`validate` tracks one checkpoint on the
@@ -124,15 +171,29 @@ pub fn select(
     dir: &Path,
     spec: &SelectionSpec,
     target: usize,
+    validate: impl FnMut(&Path) -> Result<Candidate>,
+) -> Result<Candidate> {
+    select_as(dir, spec, target, Choice::FinalPolicy, validate)
+}
+
+/// [`select`] for a final policy or (`Choice::Teacher`, `target` = the end of
+/// phase 1) an RMA teacher, which writes `teacher-selection.csv` alone: the chosen
+/// teacher is installed into the run ([`crate::runner::install_teacher`]).
+pub fn select_as(
+    dir: &Path,
+    spec: &SelectionSpec,
+    target: usize,
+    choice: Choice,
     mut validate: impl FnMut(&Path) -> Result<Candidate>,
 ) -> Result<Candidate> {
     let its = spec.candidates(target);
     let paths = its
         .iter()
         .map(|&it| {
-            checkpoint_of(dir, it, target).with_context(|| {
+            checkpoint_of(dir, it, target, choice).with_context(|| {
                 format!(
-                    "choosing the final policy of {}: it has no checkpoint of iteration {it} (the rule takes iterations {}-{target} every {}; runs save every runner.save_interval)",
+                    "choosing the {} of {}: it has no checkpoint of iteration {it} (the rule takes iterations {}-{target} every {}; runs save every runner.save_interval)",
+                    choice.what(),
                     dir.display(),
                     its[0],
                     spec.every
@@ -146,7 +207,7 @@ pub fn select(
         found.push(Candidate { iteration: it, ..c });
     }
     let k = choose(&found).context("no candidates")?;
-    let mut csv = spec.header(target);
+    let mut csv = spec.header(target, choice);
     csv.push_str("\niteration,fall_pct,lin_tracking,yaw_tracking,chosen\n");
     for (i, c) in found.iter().enumerate() {
         let _ = writeln!(
@@ -159,8 +220,10 @@ pub fn select(
             u8::from(i == k)
         );
     }
-    super::copy_atomic(&paths[k], &dir.join(SELECTED))?;
-    super::write_atomic(&dir.join(SELECTION_CSV), &csv)?;
+    if choice == Choice::FinalPolicy {
+        super::copy_atomic(&paths[k], &dir.join(SELECTED))?;
+    }
+    super::write_atomic(&dir.join(choice.csv()), &csv)?;
     Ok(found[k])
 }
 

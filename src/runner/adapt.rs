@@ -271,6 +271,51 @@ pub fn restart_adaptation(dir: &RunDir) -> Result<usize> {
     Ok(phase1_end)
 }
 
+/// Makes phase 1's checkpoint `teacher` the frozen teacher of the RMA run in `dir`,
+/// which must stand at the end of its phase 1 (phase 2 not started): its
+/// `latest.safetensors` gets the chosen checkpoint's networks (and optimiser
+/// state) with the run's own progress, so phase 2 starts from where phase 1
+/// stopped, on the chosen teacher. The numbered checkpoints stay as they were
+/// trained. Installing the same teacher twice changes nothing.
+pub fn install_teacher(dir: &RunDir, teacher: &std::path::Path) -> Result<()> {
+    let _lock = RunLock::acquire(&dir.root)?;
+    let (path, run) = dir.resume_point()?;
+    let Some(_) = run.config.learner.adaptation else {
+        bail!(
+            "{} is not an RMA run: its config has no [learner.adaptation], so it has no teacher to choose",
+            dir.root.display()
+        );
+    };
+    let phase1_end = run.config.runner.iterations;
+    if run.progress.iteration != phase1_end {
+        bail!(
+            "{} is at iteration {}, not at the end of its phase 1 ({phase1_end}): a teacher is chosen between the two phases",
+            path.display(),
+            run.progress.iteration
+        );
+    }
+    let chosen = crate::runner::load_policy(teacher)
+        .with_context(|| format!("loading the chosen teacher {}", teacher.display()))?;
+    if chosen.progress.iteration > phase1_end
+        || chosen.learner.latent_source() != LatentSource::Encoder
+    {
+        bail!(
+            "{} is not a phase-1 checkpoint of this run (iteration {}, latent from {:?})",
+            teacher.display(),
+            chosen.progress.iteration,
+            chosen.learner.latent_source()
+        );
+    }
+    if chosen.config.learner != run.config.learner || chosen.config.env != run.config.env {
+        bail!(
+            "{} was trained with another learner or env config than {}",
+            teacher.display(),
+            dir.root.display()
+        );
+    }
+    crate::runner::save_policy(&dir.latest(), &chosen.learner, &run.config, &run.progress)
+}
+
 /// `wall_s` and `total_env_steps` of `metrics.csv`'s row for `iteration`.
 fn metrics_at(path: &std::path::Path, iteration: usize) -> Result<(f64, u64)> {
     let text =

@@ -6,7 +6,7 @@ pub mod metrics;
 pub mod policy_file;
 pub mod train;
 
-pub use adapt::restart_adaptation;
+pub use adapt::{install_teacher, restart_adaptation};
 pub use dist::World;
 pub use policy_file::{load_policy, load_policy_bytes, save_policy, LoadedPolicy, Progress};
-pub use train::{train, train_in, IterationObserver, RunDir, TrainSummary, LATEST};
+pub use train::{train, train_in, IterationObserver, PhaseOneOnly, RunDir, TrainSummary, LATEST};

@@ -199,9 +199,26 @@ pub trait IterationObserver {
     fn on_iteration(&mut self, _row: &IterationRow, _learner: &Learner) -> Result<()> {
         Ok(())
     }
+    /// Whether an RMA run stops when its phase 1 ends, before phase 2 starts (the
+    /// experiment chooses the teacher there; `rall train --stop-after-phase-one`).
+    fn stop_after_phase_one(&self) -> bool {
+        false
+    }
 }
 
 impl IterationObserver for () {}
+
+/// Wraps an observer so that training stops at the end of RMA's phase 1.
+pub struct PhaseOneOnly<'a>(pub &'a mut dyn IterationObserver);
+
+impl IterationObserver for PhaseOneOnly<'_> {
+    fn on_iteration(&mut self, row: &IterationRow, learner: &Learner) -> Result<()> {
+        self.0.on_iteration(row, learner)
+    }
+    fn stop_after_phase_one(&self) -> bool {
+        true
+    }
+}
 
 /// What a finished (or interrupted) run reports.
 #[derive(Debug, Clone)]
@@ -562,7 +579,14 @@ pub fn train_in(
                 save_job_checkpoint(world, &dir, &learner, &cfg, &mut progress, &envs)?;
         }
     }
-    if !interrupted && ranks > 1 && cfg.learner.adaptation.is_some() {
+    let at_phase_one_end =
+        cfg.learner.adaptation.is_some() && progress.iteration == cfg.runner.iterations;
+    if !interrupted && at_phase_one_end && observer.stop_after_phase_one() {
+        say(format!(
+            "RMA phase 1 done at iteration {}; stopping before phase 2 (resume to run it)",
+            progress.iteration
+        ));
+    } else if !interrupted && ranks > 1 && cfg.learner.adaptation.is_some() {
         say(format!(
             "RMA phase 1 done at iteration {}; run phase 2 in one process: rall train --resume {}",
             progress.iteration,

@@ -24,3 +24,31 @@ pub fn tiny_config(critic: CriticKind) -> TrainConfig {
     c.runner.threads = 2;
     c
 }
+
+/// A method's config (`configs/<method>.toml`) made as small as [`tiny_config`]:
+/// one iteration (RMA: one of each phase), terrain of two levels and types.
+#[allow(dead_code)]
+pub fn tiny_method(method: &str) -> TrainConfig {
+    let mut c = TrainConfig::from_toml_file(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("configs/{method}.toml")),
+    )
+    .unwrap();
+    let tiny = tiny_config(c.learner.critic);
+    c.env.robot_mjcf = tiny.env.robot_mjcf.clone();
+    c.env.episode.length_s = 0.5;
+    c.env.observation.history_steps = 5;
+    c.env.terrain.num_levels = 2;
+    c.env.terrain.num_types = 2;
+    c.env.terrain.max_init_level = 1;
+    c.learner.actor_hidden = tiny.learner.actor_hidden.clone();
+    c.learner.critic_hidden = tiny.learner.critic_hidden.clone();
+    c.learner.num_taus = 8;
+    c.learner.num_target_taus = 8;
+    c.learner.num_value_taus = 8;
+    if let Some(a) = &mut c.learner.adaptation {
+        a.iterations = 1;
+    }
+    c.runner = tiny.runner.clone();
+    c.runner.iterations = 1;
+    c
+}
