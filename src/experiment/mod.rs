@@ -542,6 +542,37 @@ fn choose_final_policy(spec: &ExperimentSpec, r: &spec::RunSpec, threads: usize)
     Ok(())
 }
 
+/// Names every finished RMA run whose teacher `[selection]` did not choose (a run
+/// trained before the rule reached teachers): its student learnt from phase 1's
+/// last checkpoint, whatever it fell.
+fn warn_unchosen_teachers(spec: &ExperimentSpec) -> Result<()> {
+    let Some(sel) = &spec.selection else {
+        return Ok(());
+    };
+    for r in &spec.runs {
+        let state = run_state(spec, r)?;
+        if !state.done() || run_config(spec, r)?.learner.adaptation.is_none() {
+            continue;
+        }
+        let rd = RunDir {
+            root: state.dir.clone(),
+        };
+        let dir = match (has_checkpoints(&rd), &spec.shipped_dir) {
+            (false, Some(ship)) => ship.join(spec.run_dir_name(r)),
+            _ => state.dir.clone(),
+        };
+        if selection::stored_teacher(&dir, sel, r.iterations).is_none() {
+            eprintln!(
+                "  warning: {}: its teacher was not chosen by [selection] (no {} in {}): phase 2 trained on phase 1's last checkpoint",
+                r.label,
+                selection::TEACHER_SELECTION_CSV,
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// The final policy of the run labelled `label`: the chosen one under
 /// `[selection]` (with its iteration), else the latest.
 fn load_final_policy(spec: &ExperimentSpec, label: &str) -> Result<(NamedPolicy, Option<usize>)> {
@@ -662,6 +693,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     if spec.selection.is_some() {
         eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
         choose_final_policies(spec, threads)?;
+        warn_unchosen_teachers(spec)?;
     }
     stage(1, "velocity tracking of every policy");
     let common = spec
