@@ -428,6 +428,25 @@ fn a_common_ground_that_is_not_a_path_is_refused_with_what_it_takes() {
     );
 }
 
+/// A selection CSV's candidates (iteration, falls %) and the chosen iteration,
+/// checking that exactly one is chosen and that no candidate falls less.
+fn chosen_in(csv: &str) -> (Vec<(usize, f64)>, usize) {
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(2)
+        .map(|l| l.split(',').collect())
+        .collect();
+    let chosen: Vec<_> = rows.iter().filter(|c| c[4] == "1").collect();
+    assert_eq!(chosen.len(), 1, "{csv}");
+    let candidates: Vec<(usize, f64)> = rows
+        .iter()
+        .map(|c| (c[0].parse().unwrap(), c[1].parse().unwrap()))
+        .collect();
+    let least = candidates.iter().map(|c| c.1).fold(f64::MAX, f64::min);
+    assert_eq!(chosen[0][1].parse::<f64>().unwrap(), least, "{csv}");
+    (candidates, chosen[0][0].parse().unwrap())
+}
+
 #[test]
 fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_it() {
     use rall::experiment::{choose_final_policies, selected_checkpoint};
@@ -442,22 +461,10 @@ fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_i
     for r in &spec.runs {
         let run = spec.run_dir(r);
         let csv = std::fs::read_to_string(run.join("selection.csv")).unwrap();
-        let rows: Vec<Vec<&str>> = csv
-            .lines()
-            .skip(2)
-            .map(|l| l.split(',').collect())
-            .collect();
         // both checkpoints of the window are candidates, one is chosen, and it falls least
-        assert_eq!(rows.len(), 2, "{csv}");
-        let chosen: Vec<_> = rows.iter().filter(|c| c[4] == "1").collect();
-        assert_eq!(chosen.len(), 1, "{csv}");
-        let least = rows
-            .iter()
-            .map(|c| c[1].parse::<f64>().unwrap())
-            .fold(f64::MAX, f64::min);
-        assert_eq!(chosen[0][1].parse::<f64>().unwrap(), least, "{csv}");
-        let it: usize = chosen[0][0].parse().unwrap();
-        if rows[0][1] == rows[1][1] {
+        let (candidates, it) = chosen_in(&csv);
+        assert_eq!(candidates.len(), 2, "{csv}");
+        if candidates[0].1 == candidates[1].1 {
             assert_eq!(it, 2, "a tie goes to the later checkpoint: {csv}");
         }
         let ckpt = run.join(format!("checkpoints/model_{it:06}.safetensors"));
@@ -570,24 +577,12 @@ episodes = 1
     // the teacher: chosen among phase 1's last two checkpoints, the one that falls least
     let csv = std::fs::read_to_string(run.join("teacher-selection.csv")).unwrap();
     assert!(csv.starts_with("# RMA teacher"), "{csv}");
-    let rows: Vec<Vec<&str>> = csv
-        .lines()
-        .skip(2)
-        .map(|l| l.split(',').collect())
-        .collect();
+    let (candidates, teacher_it) = chosen_in(&csv);
     assert_eq!(
-        rows.iter().map(|c| c[0]).collect::<Vec<_>>(),
-        ["2", "3"],
+        candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
+        [2, 3],
         "{csv}"
     );
-    let chosen: Vec<_> = rows.iter().filter(|c| c[4] == "1").collect();
-    assert_eq!(chosen.len(), 1, "{csv}");
-    let least = rows
-        .iter()
-        .map(|c| c[1].parse::<f64>().unwrap())
-        .fold(f64::MAX, f64::min);
-    assert_eq!(chosen[0][1].parse::<f64>().unwrap(), least, "{csv}");
-    let teacher_it: usize = chosen[0][0].parse().unwrap();
     // phase 2 ran on that teacher: every teacher tensor of the student is the chosen one's
     let teacher =
         load_policy(&run.join(format!("checkpoints/model_{teacher_it:06}.safetensors"))).unwrap();
