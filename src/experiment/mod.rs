@@ -315,7 +315,8 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
         }
         let summary = match &spec.selection {
             Some(sel) if cfg.learner.adaptation.is_some() => {
-                train_rma(spec, r, sel, cfg, resume, stop.clone())
+                let at = state.progress.as_ref().map(|p| p.iteration);
+                train_rma(spec, r, sel, cfg, at, stop.clone())
             }
             _ => train(cfg, &state.dir, resume, stop.clone(), &mut ()),
         }
@@ -332,39 +333,36 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
     Ok(())
 }
 
-/// RMA under `[selection]`: phase 1, then its teacher chosen by the same rule among
-/// phase 1's last checkpoints and installed, then phase 2 on that teacher. A run
-/// stopped at the end of phase 1 chooses (or reuses its stored choice) and installs
-/// again: installing the same teacher twice changes nothing.
+/// RMA under `[selection]`, from its stored iteration (`None`: nothing to resume):
+/// phase 1, then its teacher chosen by the same rule among phase 1's last
+/// checkpoints and installed, then phase 2 on that teacher. A run stopped at the
+/// end of phase 1 chooses (or reuses its stored choice) and installs again:
+/// installing the same teacher twice changes nothing.
 fn train_rma(
     spec: &ExperimentSpec,
     r: &spec::RunSpec,
     sel: &selection::SelectionSpec,
     cfg: TrainConfig,
-    resume: bool,
+    stored_at: Option<usize>,
     stop: Arc<AtomicBool>,
 ) -> Result<TrainSummary> {
     let dir = spec.run_dir(r);
     let phase1_end = cfg.runner.iterations;
-    let iteration = |resume: bool| -> Result<usize> {
-        Ok(match resume {
-            true => run_state(spec, r)?.progress.map_or(0, |p| p.iteration),
-            false => 0,
-        })
-    };
-    if iteration(resume)? < phase1_end {
+    let mut at = stored_at.unwrap_or(0);
+    if at < phase1_end {
         let s = train(
             cfg.clone(),
             &dir,
-            resume,
+            stored_at.is_some(),
             stop.clone(),
             &mut PhaseOneOnly(&mut ()),
         )?;
         if s.interrupted {
             return Ok(s);
         }
+        at = s.iterations_done;
     }
-    if iteration(true)? == phase1_end {
+    if at == phase1_end {
         let rd = RunDir { root: dir.clone() };
         let chosen = match selection::stored_teacher(&dir, sel, phase1_end) {
             Some(it) => it,
@@ -487,15 +485,19 @@ fn selected_in(
     if !state.done() {
         return None;
     }
-    // the shipped copy only stands in for a run directory that has no checkpoints
-    // (as for newest_checkpoint): a run trained anew must not get an old choice
+    selection::stored(&choices_dir(spec, r, state)?, sel, state.target)
+}
+
+/// Where run `r`'s stored choices are read: its run directory, or its shipped copy
+/// when the run directory has no checkpoints (as for [`newest_checkpoint`]): a run
+/// trained anew must not get an old choice. `None` when neither exists.
+fn choices_dir(spec: &ExperimentSpec, r: &spec::RunSpec, state: &RunState) -> Option<PathBuf> {
     if has_checkpoints(&RunDir {
         root: state.dir.clone(),
     }) {
-        return selection::stored(&state.dir, sel, state.target);
+        return Some(state.dir.clone());
     }
-    let shipped = spec.shipped_dir.as_ref()?.join(spec.run_dir_name(r));
-    selection::stored(&shipped, sel, state.target)
+    Some(spec.shipped_dir.as_ref()?.join(spec.run_dir_name(r)))
 }
 
 /// The file of run `r`'s chosen final policy ([`selected_in`]).
@@ -545,22 +547,15 @@ fn choose_final_policy(spec: &ExperimentSpec, r: &spec::RunSpec, threads: usize)
 /// Names every finished RMA run whose teacher `[selection]` did not choose (a run
 /// trained before the rule reached teachers): its student learnt from phase 1's
 /// last checkpoint, whatever it fell.
-fn warn_unchosen_teachers(spec: &ExperimentSpec) -> Result<()> {
+fn warn_unchosen_teachers(spec: &ExperimentSpec, runs: &[(spec::RunSpec, RunState)]) -> Result<()> {
     let Some(sel) = &spec.selection else {
         return Ok(());
     };
-    for r in &spec.runs {
-        let state = run_state(spec, r)?;
+    for (r, state) in runs {
         if !state.done() || run_config(spec, r)?.learner.adaptation.is_none() {
             continue;
         }
-        let rd = RunDir {
-            root: state.dir.clone(),
-        };
-        let dir = match (has_checkpoints(&rd), &spec.shipped_dir) {
-            (false, Some(ship)) => ship.join(spec.run_dir_name(r)),
-            _ => state.dir.clone(),
-        };
+        let dir = choices_dir(spec, r, state).unwrap_or_else(|| state.dir.clone());
         if selection::stored_teacher(&dir, sel, r.iterations).is_none() {
             eprintln!(
                 "  warning: {}: its teacher was not chosen by [selection] (no {} in {}): phase 2 trained on phase 1's last checkpoint",
@@ -693,7 +688,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     if spec.selection.is_some() {
         eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
         choose_final_policies(spec, threads)?;
-        warn_unchosen_teachers(spec)?;
+        warn_unchosen_teachers(spec, &runs)?;
     }
     stage(1, "velocity tracking of every policy");
     let common = spec
