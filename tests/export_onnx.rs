@@ -5,7 +5,8 @@
 use std::path::{Path, PathBuf};
 
 use rall::env::{ACT_DIM, OBS_DIM};
-use rall::export::{export, sidecar_path, ExportOptions, REFERENCE_TOLERANCE};
+use rall::export::{export, export_learner, sidecar_path, ExportOptions, REFERENCE_TOLERANCE};
+use rall::learn::{Learner, NamedTensor};
 use rall::runner::load_policy;
 use tract_onnx::prelude::*;
 
@@ -101,6 +102,57 @@ fn tract_runs_the_exported_policy_to_rall_actions() {
     assert_eq!(&obs[6..9], &[0.0, 0.0, -1.0]);
     assert!(obs[12..24].iter().all(|&q| q == 0.0));
     assert!(obs[36..48].iter().all(|&a| a == 0.0));
+}
+
+/// A policy trained with `learner.obs_normalization` exports with the
+/// statistics folded into its first layer: the graph reads raw observations.
+#[test]
+fn a_normalised_policy_exports_with_its_statistics_folded_in() {
+    let dir = tempfile::tempdir().unwrap();
+    let onnx = dir.path().join("normalised.onnx");
+    let ckpt = trained_checkpoint();
+    let loaded = load_policy(&ckpt).unwrap();
+    let mut config = loaded.config.clone();
+    config.learner.obs_normalization = true;
+    let mut learner =
+        Learner::with_layout(&config.env.obs_layout(), ACT_DIM, &config.learner, 1).unwrap();
+    let mut state = loaded.learner.state();
+    let tensor = |name: &str, data: Vec<f32>| NamedTensor {
+        name: name.into(),
+        shape: vec![data.len()],
+        data,
+    };
+    state.push(tensor(
+        "obs_norm.mean",
+        (0..OBS_DIM).map(|j| 0.05 * j as f32 - 1.0).collect(),
+    ));
+    state.push(tensor(
+        "obs_norm.var",
+        (0..OBS_DIM)
+            .map(|j| (0.5 + 0.02 * j as f32).powi(2))
+            .collect(),
+    ));
+    state.push(tensor("obs_norm.count", vec![0.0, 1000.0]));
+    learner.load_state(&state).unwrap();
+    export_learner(
+        &learner,
+        &config,
+        &loaded.progress,
+        &ckpt,
+        &onnx,
+        &ExportOptions::default(),
+    )
+    .unwrap();
+    let sidecar: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sidecar_path(&onnx)).unwrap()).unwrap();
+    assert_eq!(sidecar["onnx"]["normalizer"]["kind"], "folded");
+    let obs = rows(&sidecar["reference"]["observations"], OBS_DIM);
+    let actions = rows(&sidecar["reference"]["actions"], ACT_DIM);
+    assert!(max_abs_diff(&learner.act_mean(&obs), &actions) <= 1e-6);
+    // the normaliser changes the actions, and tract reproduces the normalised ones
+    assert!(max_abs_diff(&loaded.learner.act_mean(&obs), &actions) > 1e-2);
+    let d = max_abs_diff(&run_tract(&onnx, &obs), &actions);
+    assert!(d as f64 <= REFERENCE_TOLERANCE, "tract differs by {d}");
 }
 
 #[test]

@@ -68,9 +68,9 @@ pub struct ExportReport {
     pub reference_count: usize,
 }
 
-/// An observation normaliser `(obs - mean) / std`, folded into the first layer.
-/// rall trains without one today (identity); the fold keeps the export exact
-/// when a normaliser is added.
+/// An observation normaliser `(obs - mean) / std`, folded into the first layer:
+/// the learner's empirical normaliser (`learner.obs_normalization`), else the
+/// identity. The exported graph reads raw observations either way.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObsNormalizer {
     pub mean: Vec<f32>,
@@ -561,7 +561,13 @@ pub fn export_learner(
             if config.learner.encoder.is_some() { " and a latent of the privileged group" } else { "" }
         );
     }
-    let norm = ObsNormalizer::identity(learner.obs_dim());
+    let norm = match learner.obs_normalizer() {
+        Some(n) => ObsNormalizer {
+            mean: n.mean().to_vec(),
+            std: n.divisor(),
+        },
+        None => ObsNormalizer::identity(learner.obs_dim()),
+    };
     let net = PolicyNet::from_learner(learner, &norm)?;
     ensure!(
         net.act_dim() == ACT_DIM,

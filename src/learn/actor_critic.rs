@@ -2,10 +2,12 @@
 //! the evaluator and the viewer use. Observations are `n x obs_dim` row-major.
 
 use super::nets::{GaussianActor, IqnCritic, ParamSet, ScalarCritic};
+use super::normalizer::EmpiricalNormalizer;
 use super::risk::{Distortion, IQR_TAUS};
 use super::storage::ActOutput;
 use rand::Rng;
 use rand_distr::StandardNormal;
+use std::borrow::Cow;
 
 /// `0.5 ln(2 pi)`.
 pub const HALF_LN_2PI: f32 = 0.918_938_5;
@@ -39,6 +41,10 @@ pub struct ActorCritic {
     pub critic: Critic,
     /// `beta((k + 1/2) / K)`, `k = 0..K`: the distorted value is the mean of `Z` here.
     pub value_taus: Vec<f32>,
+    /// The empirical observation normaliser every inference call applies first
+    /// (`learner.obs_normalization`); `None`: the networks read raw observations.
+    /// The update's forward passes read rows the learner normalised already.
+    pub obs_norm: Option<EmpiricalNormalizer>,
 }
 
 impl ActorCritic {
@@ -52,6 +58,15 @@ impl ActorCritic {
             actor,
             critic,
             value_taus: distortion.grid(num_value_taus),
+            obs_norm: None,
+        }
+    }
+
+    /// What the networks read for `obs`: normalised when there is a normaliser.
+    fn input<'a>(&self, obs: &'a [f32]) -> Cow<'a, [f32]> {
+        match &self.obs_norm {
+            Some(n) => n.normalized(obs),
+            None => Cow::Borrowed(obs),
         }
     }
 
@@ -78,7 +93,7 @@ impl ActorCritic {
     pub fn act<R: Rng + ?Sized>(&self, obs: &[f32], rng: &mut R) -> ActOutput {
         let n = self.rows(obs);
         let a = self.act_dim();
-        let action_mean = self.actor.mean(obs, n);
+        let action_mean = self.actor.mean(&self.input(obs), n);
         let log_std = self.actor.log_std();
         let std: Vec<f32> = log_std.iter().map(|l| l.exp()).collect();
         let sum_log_std: f32 = log_std.iter().sum();
@@ -103,13 +118,14 @@ impl ActorCritic {
 
     /// Deterministic action (the policy mean), `n x act_dim`.
     pub fn act_mean(&self, obs: &[f32]) -> Vec<f32> {
-        self.actor.mean(obs, self.rows(obs))
+        self.actor.mean(&self.input(obs), self.rows(obs))
     }
 
     /// `Z_tau(s)` for each observation and tau: `n x taus.len()`. The scalar
     /// critic has no distribution: it returns `V(s)` for every tau.
     pub fn value_quantiles(&self, obs: &[f32], taus: &[f32]) -> Vec<f32> {
         let n = self.rows(obs);
+        let obs = &self.input(obs);
         match &self.critic {
             Critic::Iqn(c) => c.quantiles(obs, n, taus),
             Critic::Scalar(c) => c
@@ -124,6 +140,7 @@ impl ActorCritic {
     /// grid for the IQN critic, `V(s)` for the scalar critic. `n` values.
     pub fn distorted_value(&self, obs: &[f32]) -> Vec<f32> {
         let n = self.rows(obs);
+        let obs = &self.input(obs);
         match &self.critic {
             Critic::Iqn(c) => {
                 let k = self.value_taus.len();

@@ -7,6 +7,7 @@ use super::adaptation::{self, adaptation_offset, AdaptationOptimizer, Regression
 use super::collective::{Collective, SingleProcess};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
+use super::normalizer::EmpiricalNormalizer;
 use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
 use super::risk::Distortion;
 use super::storage::{ActOutput, Rollout};
@@ -121,6 +122,16 @@ pub struct LearnerConfig {
     /// RMA's adaptation module (phase 2); needs `encoder`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub adaptation: Option<AdaptationConfig>,
+    /// Normalise every observation column by the running mean and std of the
+    /// observations collected so far (rsl_rl 2.x's `empirical_normalization`;
+    /// see `normalizer`). Off: the networks read the observation scales of
+    /// `env.observation` (legged_gym's) directly.
+    #[serde(skip_serializing_if = "is_false")]
+    pub obs_normalization: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 impl Default for LearnerConfig {
@@ -143,6 +154,7 @@ impl Default for LearnerConfig {
             critic_inputs: vec!["policy".into()],
             encoder: None,
             adaptation: None,
+            obs_normalization: false,
         }
     }
 }
@@ -226,6 +238,10 @@ impl LearnerConfig {
                 "learner.encoder.latent_dim must be positive"
             );
         }
+        ensure!(
+            !(self.obs_normalization && self.encoder.is_some()),
+            "learner.obs_normalization is not supported with RMA's encoder yet: its phase 2 adds the history group, which the statistics of phase 1 do not cover; remove one of the two"
+        );
         if let Some(a) = &self.adaptation {
             ensure!(
                 self.encoder.is_some(),
@@ -258,6 +274,9 @@ pub struct Learner {
     ws: Workspace,
     /// RMA phase 2's optimizer (with `adaptation` configured).
     adapt_opt: Option<AdaptationOptimizer>,
+    /// The rollout with normalised observations, reused between updates
+    /// (with `obs_normalization`).
+    normalized: Option<Rollout>,
 }
 
 impl Learner {
@@ -349,7 +368,10 @@ impl Learner {
             adam: AdamState::new(actor.params.len() - off),
             step: 0,
         });
-        let ac = ActorCritic::new(actor, critic, cfg.distortion(), cfg.num_value_taus);
+        let mut ac = ActorCritic::new(actor, critic, cfg.distortion(), cfg.num_value_taus);
+        if cfg.obs_normalization {
+            ac.obs_norm = Some(EmpiricalNormalizer::new(obs_dim));
+        }
         Ok(Learner {
             cfg: cfg.clone(),
             ac,
@@ -357,6 +379,7 @@ impl Learner {
             rng,
             ws: Workspace::default(),
             adapt_opt,
+            normalized: None,
         })
     }
 
@@ -446,16 +469,46 @@ impl Learner {
             kappa: self.cfg.kappa,
             target_lambda: self.cfg.target_lambda,
         };
-        ppo::update(
+        let Some(norm) = &self.ac.obs_norm else {
+            return ppo::update(
+                &mut self.ac,
+                &mut self.opt,
+                &mut self.ws,
+                rollout,
+                &self.cfg.ppo,
+                &ccfg,
+                &mut self.rng,
+                comm,
+            );
+        };
+        // the update reads what the actor read at collection: the rollout
+        // normalised with the same statistics; they learn from it afterwards
+        let normalized = self.normalized.get_or_insert_with(|| rollout.clone());
+        normalized.clone_from(rollout);
+        norm.normalize_in_place(&mut normalized.obs);
+        norm.normalize_in_place(&mut normalized.last_obs);
+        for (_, o) in &mut normalized.final_obs {
+            norm.normalize_in_place(o);
+        }
+        let stats = ppo::update(
             &mut self.ac,
             &mut self.opt,
             &mut self.ws,
-            rollout,
+            &*normalized,
             &self.cfg.ppo,
             &ccfg,
             &mut self.rng,
             comm,
-        )
+        )?;
+        if let Some(norm) = &mut self.ac.obs_norm {
+            norm.update(&rollout.obs, comm);
+        }
+        Ok(stats)
+    }
+
+    /// The observation normaliser (`learner.obs_normalization`), if any.
+    pub fn obs_normalizer(&self) -> Option<&EmpiricalNormalizer> {
+        self.ac.obs_norm.as_ref()
     }
 
     /// Everything needed to resume: weights (`actor.*`, `critic.*`), Adam moments
@@ -501,6 +554,9 @@ impl Learner {
                 shape: vec![1],
                 data: vec![a.step as f32],
             });
+        }
+        if let Some(n) = &self.ac.obs_norm {
+            out.extend(n.state());
         }
         out
     }
@@ -553,6 +609,12 @@ impl Learner {
             }
             picked.push(t);
         }
+        if self.ac.obs_norm.is_some() {
+            let [mean, var, count] = &picked[picked.len() - 3..] else {
+                unreachable!("state() ends with the normaliser's three tensors")
+            };
+            EmpiricalNormalizer::check(&mean.data, &var.data, &count.data)?;
+        }
         let mut it = picked.into_iter();
         let Learner {
             ac, opt, adapt_opt, ..
@@ -584,6 +646,14 @@ impl Learner {
                 .v
                 .copy_from_slice(&it.next().expect("adapt_adam.v").data);
             a.step = it.next().expect("adapt_adam.step").data[0] as u64;
+        }
+        if let Some(n) = &mut ac.obs_norm {
+            let (mean, var, count) = (
+                it.next().expect("obs_norm.mean"),
+                it.next().expect("obs_norm.var"),
+                it.next().expect("obs_norm.count"),
+            );
+            n.load(&mean.data, &var.data, &count.data)?;
         }
         Ok(())
     }

@@ -10,6 +10,7 @@
 //! - [`learner`]: the [`Learner`] facade and [`LearnerConfig`].
 //! - [`checkpoint`]: atomic safetensors files with metadata.
 //! - [`collective`]: sums across the ranks of a data-parallel run.
+//! - [`normalizer`]: the empirical observation normaliser (opt-in).
 //!
 //! Cost at the defaults (obs 48, act 12, 256 envs x 24 steps, 5 x 4 mini-batches
 //! of 1536; `benches/ppo.rs`, 2 cores with AVX-512): one update is ~71 GFLOP of
@@ -49,6 +50,7 @@ pub mod layout;
 pub mod learner;
 pub mod mat;
 pub mod nets;
+pub mod normalizer;
 pub mod ppo;
 pub mod risk;
 pub mod storage;
@@ -61,6 +63,7 @@ pub use learner::{
     AdaptationConfig, CriticKind, EncoderConfig, Learner, LearnerConfig, NamedTensor,
 };
 pub use nets::LatentSource;
+pub use normalizer::EmpiricalNormalizer;
 pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats, UpdateTimes};
 pub use risk::{Distortion, IQR_TAUS};
 pub use storage::{ActOutput, Rollout};
