@@ -99,6 +99,11 @@ pub struct LearnerConfig {
     pub critic_hidden: Vec<usize>,
     /// Initial action std.
     pub init_noise_std: f32,
+    /// The actor's output layer (weights and bias) is multiplied by this after
+    /// PyTorch's default init: 0.01 starts every robot near the default pose
+    /// (Andrychowicz et al. 2021). 1 = rsl_rl's init.
+    #[serde(skip_serializing_if = "is_one")]
+    pub actor_output_init_scale: f32,
     /// Cosine basis size of the tau embedding: `cos(pi i tau)`, `i = 0..num_cos`.
     pub num_cos: usize,
     /// `N`: taus ~ U[0,1] per mini-batch for the critic loss.
@@ -134,6 +139,10 @@ fn is_false(b: &bool) -> bool {
     !*b
 }
 
+fn is_one(x: &f32) -> bool {
+    *x == 1.0
+}
+
 impl Default for LearnerConfig {
     fn default() -> Self {
         LearnerConfig {
@@ -144,6 +153,7 @@ impl Default for LearnerConfig {
             actor_hidden: vec![512, 256, 128],
             critic_hidden: vec![512, 256, 128],
             init_noise_std: 1.0,
+            actor_output_init_scale: 1.0,
             num_cos: 64,
             num_taus: 64,
             num_target_taus: 64,
@@ -220,6 +230,11 @@ impl LearnerConfig {
         );
         ensure!(self.kappa > 0.0, "kappa must be positive");
         ensure!(self.init_noise_std > 0.0, "init_noise_std must be positive");
+        ensure!(
+            self.actor_output_init_scale.is_finite() && self.actor_output_init_scale > 0.0,
+            "learner.actor_output_init_scale must be positive (1 = rsl_rl's init), got {}",
+            self.actor_output_init_scale
+        );
         ensure!(
             (0.0..=1.0).contains(&self.target_lambda),
             "target_lambda must be in [0, 1]"
@@ -351,6 +366,9 @@ impl Learner {
                 &mut rng,
             )),
         };
+        if cfg.actor_output_init_scale != 1.0 {
+            actor.scale_output_layer(cfg.actor_output_init_scale);
+        }
         // after the critic, so that configs without them keep their initial weights
         if let (Some(e), Some(input)) = (&cfg.encoder, encoder_in) {
             actor.add_encoder(input, &e.hidden, &mut rng);

@@ -385,6 +385,20 @@ impl GaussianActor {
         &self.mlp
     }
 
+    /// Multiplies the base policy's output layer (weights and bias) by `factor`:
+    /// with a small factor the first actions sit near 0, the default pose
+    /// (Andrychowicz et al. 2021, "What matters in on-policy RL", recommend 0.01).
+    pub fn scale_output_layer(&mut self, factor: f32) {
+        let last = self.mlp.layers.last().expect("the policy MLP has layers");
+        let weights = last.w..last.w + last.inp * last.out;
+        let bias = last.b..last.b + last.out;
+        for range in [weights, bias] {
+            self.params.data[range]
+                .iter_mut()
+                .for_each(|p| *p *= factor);
+        }
+    }
+
     fn latent_module(&self) -> Option<&LatentModule> {
         match self.latent_source {
             LatentSource::Encoder => self.encoder.as_ref(),
