@@ -65,7 +65,7 @@ impl ActorCritic {
     /// What the networks read for `obs`: normalised when there is a normaliser.
     fn input<'a>(&self, obs: &'a [f32]) -> Cow<'a, [f32]> {
         match &self.obs_norm {
-            Some(n) => n.normalized(obs),
+            Some(n) => Cow::Owned(n.normalized(obs)),
             None => Cow::Borrowed(obs),
         }
     }

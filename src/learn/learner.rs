@@ -271,6 +271,28 @@ impl LearnerConfig {
     }
 }
 
+/// `rollout` with every observation (rows, time-outs' final ones, the last ones)
+/// normalised by `norm`, copied into `slot`'s buffers (kept between updates).
+fn normalized_rollout<'a>(
+    slot: &'a mut Option<Rollout>,
+    rollout: &Rollout,
+    norm: &EmpiricalNormalizer,
+) -> &'a Rollout {
+    let copy = match slot {
+        Some(copy) => {
+            copy.clone_from(rollout);
+            copy
+        }
+        None => slot.insert(rollout.clone()),
+    };
+    norm.normalize_in_place(&mut copy.obs);
+    norm.normalize_in_place(&mut copy.last_obs);
+    for (_, o) in &mut copy.final_obs {
+        norm.normalize_in_place(o);
+    }
+    copy
+}
+
 /// One named `f32` tensor of the learner state (row-major).
 #[derive(Clone, Debug, PartialEq)]
 pub struct NamedTensor {
@@ -487,32 +509,17 @@ impl Learner {
             kappa: self.cfg.kappa,
             target_lambda: self.cfg.target_lambda,
         };
-        let Some(norm) = &self.ac.obs_norm else {
-            return ppo::update(
-                &mut self.ac,
-                &mut self.opt,
-                &mut self.ws,
-                rollout,
-                &self.cfg.ppo,
-                &ccfg,
-                &mut self.rng,
-                comm,
-            );
+        // with a normaliser the update reads what the actor read at collection: the
+        // rollout normalised with the same statistics; they learn from it afterwards
+        let input = match &self.ac.obs_norm {
+            Some(norm) => normalized_rollout(&mut self.normalized, rollout, norm),
+            None => rollout,
         };
-        // the update reads what the actor read at collection: the rollout
-        // normalised with the same statistics; they learn from it afterwards
-        let normalized = self.normalized.get_or_insert_with(|| rollout.clone());
-        normalized.clone_from(rollout);
-        norm.normalize_in_place(&mut normalized.obs);
-        norm.normalize_in_place(&mut normalized.last_obs);
-        for (_, o) in &mut normalized.final_obs {
-            norm.normalize_in_place(o);
-        }
         let stats = ppo::update(
             &mut self.ac,
             &mut self.opt,
             &mut self.ws,
-            &*normalized,
+            input,
             &self.cfg.ppo,
             &ccfg,
             &mut self.rng,

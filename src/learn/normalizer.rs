@@ -10,7 +10,6 @@
 use super::collective::Collective;
 use super::learner::NamedTensor;
 use anyhow::{ensure, Result};
-use std::borrow::Cow;
 
 /// Added to the std before dividing (rsl_rl's `eps`): a column that never
 /// varies is divided by 0.01, not by 0.
@@ -72,10 +71,10 @@ impl EmpiricalNormalizer {
     }
 
     /// `rows`, normalised (a copy).
-    pub fn normalized<'a>(&self, rows: &'a [f32]) -> Cow<'a, [f32]> {
+    pub fn normalized(&self, rows: &[f32]) -> Vec<f32> {
         let mut out = rows.to_vec();
         self.normalize_in_place(&mut out);
-        Cow::Owned(out)
+        out
     }
 
     /// Merges `rows` (`n x dim`, this rank's share) into the statistics: every rank
@@ -83,27 +82,14 @@ impl EmpiricalNormalizer {
     /// all ranks' rows together (Chan et al.'s parallel update, in f64).
     pub fn update(&mut self, rows: &[f32], comm: &dyn Collective) {
         let d = self.dim();
-        let local_n = (rows.len() / d) as f64;
-        // sums over ranks: [n, sum x (d), sum x^2 (d)]
+        // sums over ranks, in f64: [n, sum x (d), sum x^2 (d)]
         let mut sums = vec![0.0f64; 1 + 2 * d];
-        sums[0] = local_n;
+        sums[0] = (rows.len() / d) as f64;
         for row in rows.chunks_exact(d) {
             for (j, &x) in row.iter().enumerate() {
                 sums[1 + j] += x as f64;
+                sums[1 + d + j] += x as f64 * x as f64;
             }
-        }
-        // centred on this rank's mean first, to keep the squares well conditioned
-        let local_mean: Vec<f64> = (0..d).map(|j| sums[1 + j] / local_n.max(1.0)).collect();
-        let mut m2 = vec![0.0f64; d];
-        for row in rows.chunks_exact(d) {
-            for (j, &x) in row.iter().enumerate() {
-                let c = x as f64 - local_mean[j];
-                m2[j] += c * c;
-            }
-        }
-        for j in 0..d {
-            // sum x^2 = M2 + n mean^2
-            sums[1 + d + j] = m2[j] + local_n * local_mean[j] * local_mean[j];
         }
         comm.sum_f64(&mut sums);
         let nb = sums[0];
