@@ -7,7 +7,7 @@
 //! - `recording to file`: the full thing, as `rall play --save` (the critic read
 //!   and logged every `VALUE_EVERY_FRAMES` frames);
 //! - `recording to file, value every step`: the same with the critic read and
-//!   logged every policy step, as before issue 14 (the "before" of the change).
+//!   logged every policy step (what `value_every_frames = 1` does).
 //!
 //! After criterion, runs every variant once per round for `PLAY_BENCH_ROUNDS` (21)
 //! rounds and prints each overhead as the median and quartiles of its ratio to the

@@ -1,4 +1,4 @@
-//! Issue 3: stepping a VecEnv does not grow memory (10k steps with resets).
+//! Stepping a VecEnv does not grow memory (10k steps with resets).
 
 use std::alloc::{GlobalAlloc, Layout};
 

@@ -1,4 +1,4 @@
-//! Issue 3: observation, reward and risk terms on hand-built states.
+//! Observation, reward and risk terms on hand-built states.
 
 use std::f64::consts::FRAC_PI_2;
 

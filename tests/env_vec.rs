@@ -1,4 +1,4 @@
-//! Issue 3: the env and VecEnv over MuJoCo: randomisation, pushes, episodes,
+//! The env and VecEnv over MuJoCo: randomisation, pushes, episodes,
 //! determinism across thread counts.
 
 use std::sync::Arc;

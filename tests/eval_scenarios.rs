@@ -1,4 +1,4 @@
-//! Issue 6: the robustness scenarios load in MuJoCo 2.2.2 and do what they say.
+//! The robustness scenarios load in MuJoCo 2.2.2 and do what they say.
 
 use rall::env::state::{rotate, rotate_inverse};
 use rall::env::{EnvConfig, OBS_DIM};

@@ -456,7 +456,7 @@ fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_i
     std::fs::write(&file, spec_text(dir.path(), "results") + rule).unwrap();
     let spec = ExperimentSpec::from_file(&file).unwrap();
     // training chooses each final policy as its run finishes, while the window's
-    // checkpoints exist (a later session's fresh clone would not have them)
+    // checkpoints exist (a fresh clone would not have them: runs/ is not committed)
     train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
     for r in &spec.runs {
         let run = spec.run_dir(r);

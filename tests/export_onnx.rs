@@ -1,4 +1,4 @@
-//! Issue 14: `rall export` writes a standard ONNX policy that a runtime we did not
+//! `rall export` writes a standard ONNX policy that a runtime we did not
 //! write (tract) runs to rall's actions within 1e-5, and a sidecar with what a
 //! controller needs.
 

@@ -1,4 +1,4 @@
-//! Issue 13: the data-parallel update. Ranks are simulated by threads that sum
+//! The data-parallel update. Ranks are simulated by threads that sum
 //! through a barrier (`learn::collective::threads`), so these run without MPI;
 //! `tests/mpi.rs` runs the real thing under `mpirun`.
 

@@ -1,4 +1,4 @@
-//! Issue 9, item 5: `learner.actor_output_init_scale` scales the actor's output
+//! `learner.actor_output_init_scale` scales the actor's output
 //! layer at initialisation and nothing else.
 
 use rall::learn::{Learner, LearnerConfig};

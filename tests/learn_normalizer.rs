@@ -1,4 +1,4 @@
-//! Issue 9, item 5: the empirical observation normaliser (`learner.obs_normalization`).
+//! The empirical observation normaliser (`learner.obs_normalization`).
 //! Acting, the update and checkpoints all see the same statistics, which learn
 //! from every rollout after its update.
 

@@ -1,4 +1,4 @@
-//! Issue 13: `rall train` under `mpirun -np 2` on this machine, as CI runs it
+//! `rall train` under `mpirun -np 2` on this machine, as CI runs it
 //! (`.ci/run` installs Open MPI; as root it needs OMPI_ALLOW_RUN_AS_ROOT, set
 //! here). Built without the `mpi` feature, these tests are not compiled.
 #![cfg(feature = "mpi")]

@@ -1,4 +1,4 @@
-//! Issue 4 (runner side): configs, checkpoints, resume, tracking evaluation.
+//! The runner: configs, checkpoints, resume, tracking evaluation.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};

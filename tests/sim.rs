@@ -1,4 +1,4 @@
-//! Issue 2: the simulation layer, the Aliengo model and PD standing.
+//! The simulation layer, the Aliengo model and PD standing.
 
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_3, FRAC_PI_6};
 

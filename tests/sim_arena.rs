@@ -1,4 +1,4 @@
-//! Issue 9 item 6: MuJoCo's arena is sized to what the Aliengo needs. The scene's
+//! MuJoCo's arena is sized to what the Aliengo needs. The scene's
 //! `<size nconmax njmax>` bounds each env's mjData (its constraint matrices grow
 //! with njmax squared); this checks the sizes hold what training on rough ground
 //! uses, random actions included (stumbles, falls), with room to spare.

@@ -2,7 +2,7 @@
 //! backend dfdx itself uses, multithreaded on rayon's global pool), fused ELU /
 //! ReLU forward and backward, column sums.
 //!
-//! Why not dfdx autograd: design.md section 4 measured dfdx with ELU composed
+//! Why not dfdx autograd: dfdx 0.13 measured with ELU composed
 //! from its ops at ~4x the plain GEMM time (160 ms vs 40 ms, batch 4096); the
 //! networks here are plain MLPs whose backward pass is a handful of GEMMs, so
 //! the learner writes forward/backward by hand over these kernels and checks

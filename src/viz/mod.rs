@@ -1,4 +1,4 @@
-//! Viewing policies in rerun (design section 5): the robot, its terrain, the
+//! Viewing policies in rerun: the robot, its terrain, the
 //! commands and, step by step, the critic's value distribution and its IQR.
 //!
 //! - [`convert`]: MuJoCo -> rerun conventions as pure functions (geoms, heightfields).

@@ -29,7 +29,7 @@ pub struct PlayOptions {
     /// Steps buffered before the recording gets them.
     pub flush_steps: usize,
     /// The critic (value chart, mean/CVaR, IQR) is read and logged every this many
-    /// frames (1: every policy step, as before issue 14).
+    /// frames (1: every policy step).
     pub value_every_frames: usize,
     /// An evaluation scenario by name (`rall eval`'s names, e.g. `ball+rough+push`)
     /// instead of the env config's own scene.
