@@ -1,4 +1,4 @@
-//! Issue 6: the benchmark harness (TTF, platform drops, race track + meta controller).
+//! The benchmark harness (TTF, platform drops, race track + meta controller).
 
 use std::path::Path;
 
