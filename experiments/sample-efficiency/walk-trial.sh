@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# Sample-efficiency trial (issue 9, item 5): trains CONFIG on one thread for at most
-# MAX_IT iterations, saving every 25, and evaluates every checkpoint as it appears the
-# way ../shared/tools/time-to-walk does (`rall eval tracking --episodes 128 --seed 777`,
+# Sample-efficiency trial: trains CONFIG on one thread for at most MAX_IT iterations,
+# saving every 25, and evaluates every checkpoint as it appears the way
+# experiments/time-to-walk.sh does (`rall eval tracking --episodes 128 --seed 777`,
 # walking = linear tracking >= 0.8 and falls < 5%). Stops training at the first
 # checkpoint that walks. Iterations, not minutes, are compared: training is
 # deterministic across thread counts, so a 1-thread run makes the iterations a
 # 2-thread run would.
-#   experiments/issue9/walk-trial.sh CONFIG RUN_DIR MAX_IT [extra rall train args...]
+#   experiments/sample-efficiency/walk-trial.sh CONFIG RUN_DIR MAX_IT [extra rall train args...]
 set -u
 cfg=$1; run=$2; max_it=$3; shift 3
 rall=./target/release/rall
