@@ -3,7 +3,7 @@
 //! thread, on the shapes of one PPO shard (768 rows: a 1,536-sample mini-batch
 //! split over two threads) of the [512, 256, 128] networks. The learner uses
 //! these kernels with `[learner.ppo] matmul = "bf16"` (opt-in: see the learning
-//! curves in policies/README.md).
+//! curves in docs/research-log.md).
 //!
 //! `cargo bench --bench amx` (prints "no AMX" and exits on CPUs without it).
 

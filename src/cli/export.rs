@@ -31,9 +31,9 @@ RR 1.0, RL 1.0 (front and rear differ); calf -1.5. The numbers above are the def
 the sidecar OUT.json holds the checkpoint's own values (scales, gains, limits, rates,
 default angles by joint name, field definitions), the network's tensor names and
 layout, and reference observations with the actions rall computes for them (check
-your runtime against them to 1e-5). See README.md, section \"Running a policy on a robot\".
+your runtime against them to 1e-5). See docs/deploy.md.
 
-An RMA student (a configs/rma.toml checkpoint after phase 2) has a second input,
+An RMA student (an RMA checkpoint after phase 2) has a second input,
 `history` (1 x 50*48): the last 50 obs, newest first (slot 0 = this step's obs), zeros
 at the start of an episode; each step: history = [obs, history minus its last 48 values],
 then a = onnx(obs, history). The sidecar's `history` section gives its length.";
