@@ -45,6 +45,8 @@ fn ep(steps: usize, end: Option<EpisodeEnd>) -> FirstEpisode {
         end,
         walked_m: steps as f64 / 100.0,
         commanded_m: 10.0,
+        progress_m: steps as f64 / 100.0,
+        strict_steps: steps,
     }
 }
 

@@ -9,8 +9,12 @@ use crate::config::{worker_threads, TrainConfig};
 use crate::eval::report::write_outputs;
 use crate::eval::{
     evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
-    with_randomization, ActionMode, FallRecord, GroundKind, Load, MetaArg, MetaConfig, NamedPolicy,
-    PlatformOptions, RaceOptions, ScenarioParams, TrackingReport, TtfOptions,
+    with_randomization, ActionMode, FallRecord, GroundKind, Ladder, Load, MetaArg, MetaConfig,
+    NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TrackingReport, TtfOptions,
+    FALL_DEFINITION,
+};
+use crate::experiment::curves::{
+    curve_csv, curve_markdown, platform_point, race_point, ttf_point, CurvePoint, Resampling,
 };
 use crate::experiment::TrackingEstimates;
 use crate::learn::{CriticKind, Distortion};
@@ -86,6 +90,30 @@ pub struct BenchmarkArgs {
     /// Turn off the friction and added-mass randomisation (paper table III ranges by default).
     #[arg(long)]
     pub no_randomization: bool,
+    /// Rungs of the severity ladder to run, e.g. 0,1,2,3: rung 0 is the paper's protocol,
+    /// each higher rung harder on every axis (printed with the results). Writes one table
+    /// per rung (<benchmark>-severity<N>.*) and the curve (<benchmark>-curve.csv/.md).
+    #[arg(long, value_name = "LIST", conflicts_with_all = ["push_force", "push_every"])]
+    pub severity: Option<String>,
+    /// A severity ladder file with every axis in every rung (default: the built-in
+    /// experiments/severity-ladder.toml).
+    #[arg(long, value_name = "FILE", requires = "severity")]
+    pub ladder: Option<PathBuf>,
+}
+
+impl BenchmarkArgs {
+    /// The ladder and the chosen rungs, or `None` without `--severity`.
+    fn rungs(&self) -> Result<Option<(Ladder, Vec<usize>)>> {
+        let Some(list) = &self.severity else {
+            return Ok(None);
+        };
+        let ladder = match &self.ladder {
+            Some(path) => Ladder::from_toml_file(path)?,
+            None => Ladder::builtin(),
+        };
+        let rungs = ladder.parse_list(list)?;
+        Ok(Some((ladder, rungs)))
+    }
 }
 
 #[derive(Debug, Args)]
@@ -108,7 +136,7 @@ pub struct TtfArgs {
     #[arg(long = "load", value_name = "LOAD")]
     pub loads: Vec<String>,
     /// Amplitude of the random rough terrain (m).
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.05, conflicts_with = "severity")]
     pub rough_amplitude: f64,
 }
 
@@ -116,8 +144,8 @@ pub struct TtfArgs {
 pub struct PlatformArgs {
     #[command(flatten)]
     pub common: BenchmarkArgs,
-    /// Platform heights (m); repeat it (default 0.40 and 0.45).
-    #[arg(long = "height", value_name = "M")]
+    /// Platform heights (m); repeat it (default 0.40 and 0.45; with --severity, the rung's).
+    #[arg(long = "height", value_name = "M", conflicts_with = "severity")]
     pub heights: Vec<f64>,
     #[arg(long, default_value_t = 3)]
     pub seeds: usize,
@@ -526,26 +554,87 @@ fn ttf(a: &TtfArgs) -> Result<()> {
         pushes: vec![false, true],
         params,
     };
-    let report = evaluate_ttf(&policies, &opts, |c| {
-        eprintln!(
-            "{:<12} {:<7} push {:<5} {:<12} TTF {:.3} ({} of {} robots fell; walked {:.0}% of the commanded distance)",
-            c.load.name(),
-            c.terrain,
-            c.push,
-            c.policy,
-            c.ttf,
-            c.falls,
-            c.robots,
-            100.0 * c.walked_ratio
-        )
-    })?;
-    finish(
-        &a.common.out,
-        "ttf",
-        &report.markdown(),
-        &report.csv(),
-        &report.json(),
-    )
+    let run = |opts: &TtfOptions| {
+        evaluate_ttf(&policies, opts, |c| {
+            eprintln!(
+                "{:<12} {:<7} push {:<5} {:<12} TTF {:.3}, strict {:.3} ({} of {} robots fell, {} strictly; progress along the command {:.0}% of the commanded path)",
+                c.load.name(),
+                c.terrain,
+                c.push,
+                c.policy,
+                c.ttf,
+                c.strict_ttf,
+                c.falls,
+                c.robots,
+                c.strict_falls,
+                100.0 * c.progress_ratio
+            )
+        })
+    };
+    let Some((ladder, rungs)) = a.common.rungs()? else {
+        let report = run(&opts)?;
+        return finish(
+            &a.common.out,
+            "ttf",
+            &report.markdown(),
+            &report.csv(),
+            &report.json(),
+        );
+    };
+    let mut outputs = Vec::new();
+    let mut points = Vec::new();
+    for &s in &rungs {
+        let rung = ladder.rung(s)?;
+        eprintln!("severity rung {s}");
+        let report = run(&TtfOptions {
+            params: rung.apply(&opts.params),
+            ..opts.clone()
+        })?;
+        for p in &policies {
+            let one = [p.name.clone()];
+            let r = Resampling::default();
+            points.extend(ttf_point(&report, &one, &p.name, s, false, r));
+            points.extend(ttf_point(&report, &one, &p.name, s, true, r));
+        }
+        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
+        outputs.push((format!("ttf-severity{s}"), md, report.csv(), report.json()));
+    }
+    finish_ladder(&a.common.out, "ttf", &ladder, &rungs, outputs, &points)
+}
+
+/// Writes every rung's table and the curve, once every rung has been evaluated
+/// (a failed rung writes nothing).
+fn finish_ladder(
+    out: &Path,
+    benchmark: &str,
+    ladder: &Ladder,
+    rungs: &[usize],
+    outputs: Vec<(String, String, String, serde_json::Value)>,
+    points: &[CurvePoint],
+) -> Result<()> {
+    for (stem, md, csv, json) in &outputs {
+        finish(out, stem, md, csv, json)?;
+    }
+    let mut md = format!("Severity ladder\n\n{}\n", ladder.markdown(rungs));
+    let mut metrics: Vec<&str> = Vec::new();
+    for p in points {
+        if !metrics.contains(&p.metric) {
+            metrics.push(p.metric);
+        }
+    }
+    for m in metrics {
+        let these: Vec<CurvePoint> = points.iter().filter(|p| p.metric == m).cloned().collect();
+        let digits = if m == "ttf" || m == "strict_ttf" { 3 } else { 1 };
+        md.push_str(&format!(
+            "\n{benchmark}: {m} against severity (95% bootstrap over robots)\n\n{}",
+            curve_markdown(&these, digits)
+        ));
+    }
+    if benchmark != "race" {
+        md.push_str(&format!("\n{FALL_DEFINITION}\n"));
+    }
+    let json = serde_json::json!({ "ladder": ladder, "rungs": rungs, "points": points });
+    finish(out, &format!("{benchmark}-curve"), &md, &curve_csv(points), &json)
 }
 
 fn platform(a: &PlatformArgs) -> Result<()> {
@@ -574,28 +663,51 @@ fn platform(a: &PlatformArgs) -> Result<()> {
             .unwrap_or(Load::None),
         params,
     };
-    let report = evaluate_platform(&policies, &opts, |c| {
-        eprintln!(
-            "{:.2} m  {:<12} success {:.1}% ({} of {}; fell {}, not landed {}, fell before the edge {}, not reached {}; ends {:?})",
-            c.height_m,
-            c.policy,
-            c.success_pct,
-            c.success,
-            c.robots,
-            c.fell,
-            c.not_landed,
-            c.fell_before_drop,
-            c.not_reached,
-            c.ends
-        )
-    })?;
-    finish(
-        &a.common.out,
-        "platform",
-        &report.markdown(),
-        &report.csv(),
-        &report.json(),
-    )
+    let run = |opts: &PlatformOptions| {
+        evaluate_platform(&policies, opts, |c| {
+            eprintln!(
+                "{:.2} m  {:<12} success {:.1}% ({} of {}; fell {}, not landed {}, fell before the edge {}, not reached {}; ends {:?})",
+                c.height_m,
+                c.policy,
+                c.success_pct,
+                c.success,
+                c.robots,
+                c.fell,
+                c.not_landed,
+                c.fell_before_drop,
+                c.not_reached,
+                c.ends
+            )
+        })
+    };
+    let Some((ladder, rungs)) = a.common.rungs()? else {
+        let report = run(&opts)?;
+        return finish(
+            &a.common.out,
+            "platform",
+            &report.markdown(),
+            &report.csv(),
+            &report.json(),
+        );
+    };
+    let mut outputs = Vec::new();
+    let mut points = Vec::new();
+    for &s in &rungs {
+        let rung = ladder.rung(s)?;
+        eprintln!("severity rung {s}");
+        let report = run(&PlatformOptions {
+            heights_m: rung.platform_heights_m.clone(),
+            params: rung.apply(&opts.params),
+            ..opts.clone()
+        })?;
+        for p in &policies {
+            let one = [p.name.clone()];
+            points.extend(platform_point(&report, &one, &p.name, s, Resampling::default()));
+        }
+        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
+        outputs.push((format!("platform-severity{s}"), md, report.csv(), report.json()));
+    }
+    finish_ladder(&a.common.out, "platform", &ladder, &rungs, outputs, &points)
 }
 
 fn race(a: &RaceArgs) -> Result<()> {
@@ -657,22 +769,44 @@ fn race(a: &RaceArgs) -> Result<()> {
         course_seed: a.course_seed,
         params,
     };
-    let report = evaluate_race(&policies, meta.as_slice(), &opts, |r| {
-        eprintln!(
-            "{:<16} returns q0.25 {:.3}  q0.5 {:.3}  q0.75 {:.3}  ({} episodes, {:.1}% falls)",
-            r.name,
-            r.q25,
-            r.q50,
-            r.q75,
-            r.episodes,
-            100.0 * r.fall_fraction
-        )
-    })?;
-    finish(
-        &a.common.out,
-        "race",
-        &report.markdown(),
-        &report.csv(),
-        &report.json(),
-    )
+    let run = |opts: &RaceOptions| {
+        evaluate_race(&policies, meta.as_slice(), opts, |r| {
+            eprintln!(
+                "{:<16} returns q0.25 {:.3}  q0.5 {:.3}  q0.75 {:.3}  ({} episodes, {:.1}% falls)",
+                r.name,
+                r.q25,
+                r.q50,
+                r.q75,
+                r.episodes,
+                100.0 * r.fall_fraction
+            )
+        })
+    };
+    let Some((ladder, rungs)) = a.common.rungs()? else {
+        let report = run(&opts)?;
+        return finish(
+            &a.common.out,
+            "race",
+            &report.markdown(),
+            &report.csv(),
+            &report.json(),
+        );
+    };
+    let mut outputs = Vec::new();
+    let mut points = Vec::new();
+    for &s in &rungs {
+        let rung = ladder.rung(s)?;
+        eprintln!("severity rung {s}");
+        let report = run(&RaceOptions {
+            params: rung.apply(&opts.params),
+            ..opts.clone()
+        })?;
+        for row in &report.rows {
+            let one = [row.name.clone()];
+            points.extend(race_point(&report, &one, &row.name, s, Resampling::default()));
+        }
+        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
+        outputs.push((format!("race-severity{s}"), md, report.csv(), report.json()));
+    }
+    finish_ladder(&a.common.out, "race", &ladder, &rungs, outputs, &points)
 }

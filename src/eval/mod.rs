@@ -5,6 +5,7 @@
 //! - [`ttf`]: Time to Fall (paper table I); [`platform`]: platform drops
 //!   (table II); [`race`]: race-track returns and the IQR meta controller (fig. 4).
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
+//! - [`severity`]: the severity ladder (rung 0 = the paper's protocol, harder above).
 
 pub mod falls;
 pub mod ground;
@@ -12,8 +13,10 @@ pub mod mjcf;
 pub mod platform;
 pub mod race;
 pub mod report;
+pub mod risk_calibration;
 pub mod rollout;
 pub mod scenario;
+pub mod severity;
 pub mod tracking;
 pub mod ttf;
 
@@ -29,4 +32,5 @@ pub use tracking::{
     evaluate_tracking, evaluate_tracking_with_falls, fall_rate, lin_vel_score, tracking_env,
     with_randomization, yaw_rate_score, ActionMode, FallRecord, RobotTracking, TrackingReport,
 };
-pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport};
+pub use severity::{Ladder, Rung};
+pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport, FALL_DEFINITION};

@@ -118,6 +118,14 @@ pub struct FirstEpisode {
     pub walked_m: f64,
     /// Integral of the commanded planar speed over the episode (m).
     pub commanded_m: f64,
+    /// Distance made good along the command: the integral of v . c/|c| (body-frame
+    /// planar velocity and command) over the episode (m). Over `commanded_m`, 1 is
+    /// perfect tracking, 0 standing still, whatever the command's turns.
+    pub progress_m: f64,
+    /// Policy steps until any part of the robot but a foot (or of what is fixed to
+    /// it) first touched the ground: the strict fall definition; the full length
+    /// when that never happened.
+    pub strict_steps: usize,
 }
 
 impl FirstEpisode {
@@ -144,37 +152,47 @@ pub fn run_first_episodes(
     let dt = setup.env.control.policy_dt_s();
     let mut first: Vec<Option<FirstEpisode>> = vec![None; n];
     let mut commanded = vec![0.0f64; n];
+    let mut progress = vec![0.0f64; n];
+    let mut strict: Vec<Option<usize>> = vec![None; n];
     let walked = |env: &Env| {
         let p = env.robot().base_pos_m();
         (p[0] - setup.spawn_m[0]).hypot(p[1] - setup.spawn_m[1])
     };
     for step in 1..=max_steps {
-        for (i, c) in commanded.iter_mut().enumerate() {
-            let cmd = run.env(i).command();
+        let commands: Vec<[f64; 3]> = (0..n).map(|i| run.env(i).command()).collect();
+        for (c, cmd) in commanded.iter_mut().zip(&commands) {
             *c += cmd[0].hypot(cmd[1]) * dt;
         }
         let actions = policy.act_mean(run.obs());
         for s in run.step(&actions) {
-            let f = &mut first[s.env_index];
-            if f.is_none() {
-                *f = Some(FirstEpisode {
+            let i = s.env_index;
+            if first[i].is_none() {
+                first[i] = Some(FirstEpisode {
                     steps: s.steps,
                     end: Some(s.end),
                     walked_m: s.distance_m,
                     commanded_m: s.commanded_distance_m,
+                    progress_m: progress[i],
+                    strict_steps: strict[i].unwrap_or(s.steps).min(s.steps),
                 });
             }
         }
-        for (i, f) in first.iter_mut().enumerate() {
-            if f.is_some() {
+        for i in 0..n {
+            if first[i].is_some() {
                 continue;
             }
+            progress[i] += progress_along_command_mps(run.env(i), commands[i]) * dt;
+            if strict[i].is_none() && run.hooks[i].non_foot_on_ground(run.env(i)) {
+                strict[i] = Some(step);
+            }
             if run.payload_on_ground(i) {
-                *f = Some(FirstEpisode {
+                first[i] = Some(FirstEpisode {
                     steps: step,
                     end: None,
                     walked_m: walked(run.env(i)),
                     commanded_m: commanded[i],
+                    progress_m: progress[i],
+                    strict_steps: strict[i].unwrap_or(step).min(step),
                 });
             } else {
                 observe(i, run.env(i), step);
@@ -193,9 +211,22 @@ pub fn run_first_episodes(
                 end: Some(EpisodeEnd::TimeOut),
                 walked_m: walked(run.env(i)),
                 commanded_m: commanded[i],
+                progress_m: progress[i],
+                strict_steps: strict[i].unwrap_or(max_steps),
             })
         })
         .collect())
+}
+
+/// The body-frame planar velocity along the planar command's direction (m/s);
+/// 0 under a zero planar command.
+fn progress_along_command_mps(env: &Env, command: [f64; 3]) -> f64 {
+    let norm = command[0].hypot(command[1]);
+    if norm == 0.0 {
+        return 0.0;
+    }
+    let v = env.state().base_lin_vel_body_mps;
+    (v[0] * command[0] + v[1] * command[1]) / norm
 }
 
 /// Linear-interpolation quantile (numpy's default) of `values` at `q` in [0, 1];

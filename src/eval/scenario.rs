@@ -239,6 +239,9 @@ pub struct ScenarioParams {
     pub arm_resample_s: f64,
     /// Arm pose of the keyframe and of the frozen arm (menagerie's "home"), rad.
     pub arm_home_rad: [f64; 6],
+    /// The ball container's inner length and width, as a factor of 0.34 x 0.18 m.
+    #[serde(skip_serializing_if = "is_one")]
+    pub ball_container_scale: f64,
     pub rough: RoughParams,
     pub platform: PlatformParams,
     pub race: RaceTrackParams,
@@ -257,11 +260,47 @@ impl Default for ScenarioParams {
             added_base_mass_kg: Some([-0.5, 1.0]),
             arm_resample_s: 2.0,
             arm_home_rad: [0.0, 0.785, -0.261, -0.523, 0.0, 0.0],
+            ball_container_scale: 1.0,
             rough: RoughParams::default(),
             platform: PlatformParams::default(),
             race: RaceTrackParams::default(),
         }
     }
+}
+
+fn is_one(x: &f64) -> bool {
+    *x == 1.0
+}
+
+/// The ball container's trunk fragment with its inner length and width times
+/// `scale` (walls 6 mm thick, 0.08 m high, mass 0.1 kg); at 1 the MJCF file's own.
+fn ball_container_trunk_xml(scale: f64) -> Result<String> {
+    let original = mjcf::fragment(mjcf::BALL_CONTAINER_XML, "trunk")?;
+    if scale == 1.0 {
+        return Ok(original.to_string());
+    }
+    let (lx, ly) = (0.17 * scale, 0.09 * scale); // inner half sides
+    let (bx, by) = (lx + 0.006, ly + 0.006);
+    let wall = |name: &str, size: [f64; 3], pos: [f64; 3]| {
+        format!(
+            "      <geom name=\"container_{name}\" type=\"box\" size=\"{} {} {}\" pos=\"{} {} {}\" contype=\"3\" conaffinity=\"0\" rgba=\"0.2 0.45 0.8 0.6\"/>\n",
+            size[0], size[1], size[2], pos[0], pos[1], pos[2]
+        )
+    };
+    let s2 = scale * scale;
+    let mut xml = format!(
+        "\n    <body name=\"payload_container\" pos=\"0 0 0.056\">\n      <inertial pos=\"0 0 0.03\" mass=\"0.1\" diaginertia=\"{} {} {}\"/>\n",
+        0.0006 * s2,
+        0.0013 * s2,
+        0.0017 * s2
+    );
+    xml += &wall("bottom", [bx, by, 0.003], [0.0, 0.0, 0.003]);
+    xml += &wall("front", [0.003, by, 0.04], [lx + 0.003, 0.0, 0.046]);
+    xml += &wall("back", [0.003, by, 0.04], [-(lx + 0.003), 0.0, 0.046]);
+    xml += &wall("left", [bx, 0.003, 0.04], [0.0, ly + 0.003, 0.046]);
+    xml += &wall("right", [bx, 0.003, 0.04], [0.0, -(ly + 0.003), 0.046]);
+    xml += "    </body>\n    ";
+    Ok(xml)
 }
 
 /// Z1 joint names in chain order.
@@ -311,6 +350,10 @@ struct HookTemplate {
     resample_steps: usize,
     /// Per geom id: touching the world body is a fall.
     fall_geoms: Arc<Vec<bool>>,
+    /// Per geom id: touching the world body is a fall under the strict definition
+    /// (any geom of the robot or fixed to it but the feet: hips, thighs, calves,
+    /// trunk, container, the whole arm).
+    strict_fall_geoms: Arc<Vec<bool>>,
 }
 
 #[derive(Debug, Clone)]
@@ -360,13 +403,23 @@ impl ScenarioHook {
     /// Whether a payload part fixed to the trunk (container, arm base or upper
     /// arm) touches the ground: the robot has fallen even if the env goes on.
     pub fn payload_on_ground(&self, env: &Env) -> bool {
-        let r = env.robot();
-        let fall = &self.t.fall_geoms;
-        r.data().contacts().any(|c| {
-            (fall[c.geom1] && r.model().geom_body(c.geom2) == 0)
-                || (fall[c.geom2] && r.model().geom_body(c.geom1) == 0)
-        })
+        touches_ground(env, &self.t.fall_geoms)
     }
+
+    /// Whether any part of the robot but its feet, or of what is fixed to it,
+    /// touches the ground (the strict fall definition).
+    pub fn non_foot_on_ground(&self, env: &Env) -> bool {
+        touches_ground(env, &self.t.strict_fall_geoms)
+    }
+}
+
+/// Whether a geom marked in `mask` touches a geom of the world body.
+fn touches_ground(env: &Env, mask: &[bool]) -> bool {
+    let r = env.robot();
+    r.data().contacts().any(|c| {
+        (mask[c.geom1] && r.model().geom_body(c.geom2) == 0)
+            || (mask[c.geom2] && r.model().geom_body(c.geom1) == 0)
+    })
 }
 
 fn write_arm_targets(env: &mut Env, arm: &ArmInfo, targets: &[f64; 6]) {
@@ -494,7 +547,7 @@ pub fn build_scenario(
     match spec.load {
         Load::None => {}
         Load::Ball => {
-            parts.trunk = mjcf::fragment(mjcf::BALL_CONTAINER_XML, "trunk")?.to_string();
+            parts.trunk = ball_container_trunk_xml(params.ball_container_scale)?;
             parts.world = mjcf::fragment(mjcf::BALL_CONTAINER_XML, "world")?.to_string();
         }
         Load::FrozenArm | Load::MovingArm => {
@@ -697,7 +750,25 @@ fn hook_template(
         moving: load == Load::MovingArm,
         resample_steps,
         fall_geoms: Arc::new(fall_geoms),
+        strict_fall_geoms: Arc::new(strict_fall_geoms(model, &layout)),
     })
+}
+
+/// Geoms of the trunk's body tree (the robot and what is welded to it) that are
+/// not feet.
+fn strict_fall_geoms(model: &Model, layout: &RobotLayout) -> Vec<bool> {
+    let on_robot = |mut b: usize| {
+        while b != 0 {
+            if b == layout.trunk_body {
+                return true;
+            }
+            b = model.body_parent(b);
+        }
+        false
+    };
+    (0..model.ngeom())
+        .map(|g| !matches!(layout.geom_parts[g], Part::Foot(_)) && on_robot(model.geom_body(g)))
+        .collect()
 }
 
 #[cfg(test)]

@@ -65,12 +65,32 @@ pub struct TtfCell {
     pub payload_falls: usize,
     pub mean_steps: f64,
     pub episode_steps: usize,
-    /// Distance walked from the spawn point / commanded distance, summed over the
-    /// robots (a robot standing still never falls: this tells whether they walked).
+    /// Net displacement from the spawn point / commanded path length, summed over
+    /// the robots. Under changing commands even perfect tracking scores well below
+    /// 1 (the path turns); `progress_ratio` is the measure to read.
     pub walked_ratio: f64,
+    /// Distance made good along the command / commanded path length, summed over
+    /// the robots: 1 is perfect tracking, 0 standing still ("robust because it
+    /// stands still" shows here).
+    pub progress_ratio: f64,
+    /// Time to Fall under the strict definition: the episode ends at the first
+    /// contact of any non-foot part of the robot (or of its payload's fixed parts)
+    /// with the ground.
+    pub strict_ttf: f64,
+    /// Robots with such a contact before the time-out.
+    pub strict_falls: usize,
     /// Policy steps each robot survived, seed-major (for bootstrap intervals).
     pub steps_per_robot: Vec<usize>,
+    /// The same under the strict definition.
+    pub strict_steps_per_robot: Vec<usize>,
 }
+
+/// How the benchmarks define a fall (printed with every table and figure).
+pub const FALL_DEFINITION: &str = "A fall: the env's termination (trunk tilted past its limit \
+or the trunk on the ground) or a payload part fixed to the trunk (ball container, arm base, \
+shoulder, upper arm, elbow) touching the ground; the arm's forearm and wrist and the legs above \
+the feet may touch it. Strict: any contact of a non-foot part of the robot or its fixed payload \
+with the ground.";
 
 /// All cells, in table order.
 #[derive(Debug, Clone, Serialize)]
@@ -105,6 +125,7 @@ pub fn ttf_cell(
 ) -> TtfCell {
     let all: Vec<FirstEpisode> = per_seed.iter().flatten().copied().collect();
     let lengths: Vec<usize> = all.iter().map(|e| e.steps).collect();
+    let strict: Vec<usize> = all.iter().map(|e| e.strict_steps).collect();
     TtfCell {
         load: spec.load,
         terrain: terrain_label(&spec.ground).to_lowercase(),
@@ -128,7 +149,12 @@ pub fn ttf_cell(
         episode_steps,
         walked_ratio: all.iter().map(|e| e.walked_m).sum::<f64>()
             / all.iter().map(|e| e.commanded_m).sum::<f64>(),
+        progress_ratio: all.iter().map(|e| e.progress_m).sum::<f64>()
+            / all.iter().map(|e| e.commanded_m).sum::<f64>(),
+        strict_ttf: time_to_fall(&strict, episode_steps),
+        strict_falls: strict.iter().filter(|&&s| s < episode_steps).count(),
         steps_per_robot: lengths,
+        strict_steps_per_robot: strict,
     }
 }
 
@@ -241,7 +267,8 @@ impl TtfReport {
         let steps = self.cells.first().map_or(0, |c| c.episode_steps);
         format!(
             "Time to Fall (mean episode length / {steps} steps; {} seeds x {} robots per cell; \
-             pushes {} N every {} steps for {})\n\n{}",
+             pushes {} N every {} steps for {})\n\n{}\n{FALL_DEFINITION} Strict TTF, progress \
+             along the command and falls per cell: ttf.csv.\n",
             o.seeds.len(),
             o.repeats,
             o.params.push_force_n,
@@ -267,6 +294,9 @@ impl TtfReport {
                 "episode_steps",
                 "walked_ratio",
                 "ttf_per_seed",
+                "progress_ratio",
+                "strict_ttf",
+                "strict_falls",
             ]
             .map(String::from),
         );
@@ -285,6 +315,9 @@ impl TtfReport {
                 c.episode_steps.to_string(),
                 format!("{:.3}", c.walked_ratio),
                 per_seed.join(";"),
+                format!("{:.3}", c.progress_ratio),
+                format!("{:.4}", c.strict_ttf),
+                c.strict_falls.to_string(),
             ]));
         }
         s

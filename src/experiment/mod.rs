@@ -4,6 +4,9 @@
 //! drops, race track with the IQR meta controller) and writes tables beside the
 //! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
 
+pub mod curve_plots;
+pub mod curves;
+mod ladder;
 pub mod plots;
 pub mod pooled;
 pub mod results;
@@ -426,7 +429,7 @@ fn validation<'a>(
 
 /// A finished run's final policy is chosen as soon as training ends: the
 /// candidates are checkpoints of the run directory, which is not shipped, so a
-/// later session (a fresh clone) may no longer have them. A run whose window is
+/// later checkout (a fresh clone) may no longer have them. A run whose window is
 /// gone is left to the evaluation, which refuses it naming the missing checkpoint.
 fn choose_while_the_window_exists(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<()> {
     let Some(sel) = &spec.selection else {
@@ -677,7 +680,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             .cloned()
             .collect()
     };
-    let stages = 5;
+    let stages = if spec.curves.is_some() { 6 } else { 5 };
     let stage = |k: usize, what: &str| {
         eprintln!(
             "[eval {k}/{stages}] {what} ({:.1} min so far)",
@@ -846,7 +849,26 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             },
         )?)
     };
-    Ok(ExperimentResults::new(
+    let mut curves = Vec::new();
+    if let Some(c) = &spec.curves {
+        eprintln!(
+            "[eval 6/{stages}] robustness curves over the severity ladder ({:.1} min so far)",
+            start.elapsed().as_secs_f64() / 60.0
+        );
+        let reports = ladder::RungReports {
+            ttf: ttf.as_ref(),
+            platform: platform.as_ref(),
+            race: race.as_ref(),
+        };
+        let tables = ladder::TableRuns {
+            ttf: (&ttf_opts, ttf_methods.clone()),
+            platform: (&platform_opts, platform_methods.clone()),
+            race: (&race_opts, race_labels.clone()),
+            metas: &metas,
+        };
+        curves = ladder::evaluate_curves(spec, c, &reports, &tables)?;
+    }
+    let mut results = ExperimentResults::new(
         spec,
         runs,
         tracking,
@@ -854,7 +876,9 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         platform,
         race,
         start.elapsed().as_secs_f64(),
-    ))
+    );
+    results.set_curves(spec, curves)?;
+    Ok(results)
 }
 
 /// Trains (if asked), evaluates (if asked) and writes the results.

@@ -289,5 +289,6 @@ pub fn write_all(r: &ExperimentResults, dir: &Path) -> Result<()> {
     ttf_figure(r, &dir.join("ttf.svg"))?;
     platform_figure(r, &dir.join("platform.svg"))?;
     race_figure(r, &dir.join("race.svg"))?;
-    race_iqr_figure(r, &dir.join("race_iqr.svg"))
+    race_iqr_figure(r, &dir.join("race_iqr.svg"))?;
+    super::curve_plots::write_curves(r, dir)
 }

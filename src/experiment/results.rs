@@ -7,6 +7,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use serde::Serialize;
 
+use super::curves::{curve_csv, curve_markdown, CurvePoint};
 use super::pooled::{show_with_seeds, MethodTables};
 use super::spec::{common_ground_name, ExperimentSpec, RunSpec};
 use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
@@ -14,7 +15,7 @@ use super::RunState;
 use crate::eval::race::IqrBin;
 use crate::eval::report::csv_field;
 use crate::eval::{
-    fall_rate, lin_vel_score, yaw_rate_score, PlatformReport, RaceReport, RobotTracking,
+    fall_rate, lin_vel_score, yaw_rate_score, Ladder, PlatformReport, RaceReport, RobotTracking,
     TrackingReport, TtfReport,
 };
 
@@ -156,6 +157,15 @@ pub struct ExperimentResults {
     pub meta: Vec<MetaSummary>,
     /// The three tables again, one row per method over its seeds.
     pub methods: MethodTables,
+    /// Robustness curves (`[curves]`): a point per method, benchmark and rung.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub curves: Vec<CurvePoint>,
+    /// The ladder behind the curves.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ladder: Option<Ladder>,
+    /// The paper's number at rung 0 of each curve that has one: (benchmark, method, value).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub curve_paper: Vec<(String, String, f64)>,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
     pub evaluation_wall_clock_min: f64,
@@ -340,8 +350,64 @@ impl ExperimentResults {
             race: race_rows,
             meta,
             methods,
+            curves: Vec::new(),
+            ladder: None,
+            curve_paper: Vec::new(),
             evaluation_wall_clock_min: eval_wall_s / 60.0,
         }
+    }
+
+    /// Adds the robustness curves of `spec`'s `[curves]` (none without it).
+    pub fn set_curves(&mut self, spec: &ExperimentSpec, points: Vec<CurvePoint>) -> Result<()> {
+        self.ladder = match &spec.curves {
+            Some(c) => Some(c.ladder()?),
+            None => None,
+        };
+        self.curve_paper = Vec::new();
+        for p in points.iter().filter(|p| p.severity == 0) {
+            let known = self
+                .curve_paper
+                .iter()
+                .any(|(b, m, _)| b == p.benchmark && *m == p.policy);
+            if let Some(v) = paper_curve_value(spec, p.benchmark, &p.policy).filter(|_| !known) {
+                self.curve_paper
+                    .push((p.benchmark.to_string(), p.policy.clone(), v));
+            }
+        }
+        self.curves = points;
+        Ok(())
+    }
+
+    fn curves_markdown(&self, s: &mut String) {
+        let Some(ladder) = &self.ladder else { return };
+        if self.curves.is_empty() {
+            return;
+        }
+        let mut rungs: Vec<usize> = self.curves.iter().map(|p| p.severity).collect();
+        rungs.sort_unstable();
+        rungs.dedup();
+        let _ = writeln!(s, "## Robustness curves
+");
+        let _ = writeln!(s, "Each method (seeds pooled with equal weight) on every rung of the severity ladder; rung 0 is the paper's protocol (the tables below), each higher rung harder on every axis. 95% bootstrap over robots in brackets; `figures/curve_<benchmark>.svg` draws them, `curves.csv` lists them.
+");
+        let _ = writeln!(s, "{}", ladder.markdown(&rungs));
+        for (metric, title, digits) in [
+            ("ttf", "Time to Fall, mean over table I's cells", 3),
+            ("strict_ttf", "Time to Fall, strict fall definition", 3),
+            ("success_pct", "Platform success (%), the rung's heights pooled", 1),
+            ("return_q25", "Race return, 0.25 quantile", 1),
+        ] {
+            let these: Vec<CurvePoint> = self
+                .curves
+                .iter()
+                .filter(|p| p.metric == metric)
+                .cloned()
+                .collect();
+            if !these.is_empty() {
+                let _ = writeln!(s, "### {title}\n\n{}", curve_markdown(&these, digits));
+            }
+        }
+        let _ = writeln!(s, "{}\n", crate::eval::FALL_DEFINITION);
     }
 
     /// Methods in table order (first appearance).
@@ -399,6 +465,7 @@ impl ExperimentResults {
         let _ = writeln!(s);
         self.common_ground_markdown(&mut s);
 
+        self.curves_markdown(&mut s);
         self.methods_markdown(&mut s);
         let _ = writeln!(s, "## Per training run\n");
         let _ = writeln!(
@@ -739,7 +806,7 @@ impl ExperimentResults {
                 r.episodes
             );
         }
-        vec![
+        let mut files = vec![
             ("runs.csv", runs),
             ("ttf_by_method.csv", ttf_m),
             ("platform_by_method.csv", platform_m),
@@ -747,7 +814,11 @@ impl ExperimentResults {
             ("ttf.csv", ttf),
             ("platform.csv", platform),
             ("race.csv", race),
-        ]
+        ];
+        if !self.curves.is_empty() {
+            files.push(("curves.csv", curve_csv(&self.curves)));
+        }
+        files
     }
 
     /// Writes README.md, the CSVs, results.json and figures/ into `dir`.
@@ -771,6 +842,29 @@ impl ExperimentResults {
         )?;
         super::plots::write_all(self, &dir.join("figures"))
     }
+}
+
+/// The paper's number of `method` at rung 0 of `benchmark`'s curve: table I's
+/// mean over its twelve cells, table II's mean over its heights.
+fn paper_curve_value(spec: &ExperimentSpec, benchmark: &str, method: &str) -> Option<f64> {
+    let values: Vec<f64> = match benchmark {
+        "ttf" => spec
+            .paper
+            .ttf
+            .iter()
+            .filter(|r| r.method == method)
+            .flat_map(|r| r.ttf)
+            .collect(),
+        "platform" => spec
+            .paper
+            .platform
+            .iter()
+            .filter(|r| r.method == method)
+            .map(|r| r.success_pct)
+            .collect(),
+        _ => Vec::new(),
+    };
+    (!values.is_empty()).then(|| mean(&values))
 }
 
 /// Table I in Markdown under its heading: a row per load x method, named by

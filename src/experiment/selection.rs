@@ -5,7 +5,7 @@
 //! `[selection]` the final policy is the last checkpoint. RMA's teacher is chosen
 //! by the same rule among phase 1's last checkpoints, before phase 2 starts.
 //!
-//! Why (policies/README.md, session 17): with the scalar critic a checkpoint's fall
+//! Why (docs/research-log.md): with the scalar critic a checkpoint's fall
 //! rate swings between 0% and 11% from one checkpoint to the next, 50 iterations
 //! apart, so the last one alone is a draw.
 

@@ -39,6 +39,59 @@ pub struct ExperimentSpec {
     pub bootstrap: BootstrapSpec,
     #[serde(default)]
     pub paper: PaperNumbers,
+    /// Robustness curves over the severity ladder (`[curves]`); absent: the tables only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curves: Option<CurvesSpec>,
+}
+
+/// Every table's methods on every listed rung of the severity ladder. Rung 0 is
+/// the tables themselves; the higher rungs may run fewer robots (their own keys).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurvesSpec {
+    pub severity: Vec<usize>,
+    /// A ladder file (default: the built-in `experiments/severity-ladder.toml`).
+    #[serde(default)]
+    pub ladder: Option<PathBuf>,
+    pub ttf_seeds: usize,
+    pub ttf_repeats: usize,
+    pub platform_seeds: usize,
+    pub platform_repeats: usize,
+    pub race_agents: usize,
+    pub race_episodes: usize,
+}
+
+impl CurvesSpec {
+    /// The ladder the curves use.
+    pub fn ladder(&self) -> Result<crate::eval::Ladder> {
+        match &self.ladder {
+            Some(path) => crate::eval::Ladder::from_toml_file(path),
+            None => Ok(crate::eval::Ladder::builtin()),
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let ladder = self.ladder()?;
+        if self.severity.is_empty() {
+            bail!("curves.severity lists no rung");
+        }
+        for &s in &self.severity {
+            ladder.rung(s).context("curves.severity")?;
+        }
+        for (key, v) in [
+            ("curves.ttf_seeds", self.ttf_seeds),
+            ("curves.ttf_repeats", self.ttf_repeats),
+            ("curves.platform_seeds", self.platform_seeds),
+            ("curves.platform_repeats", self.platform_repeats),
+            ("curves.race_agents", self.race_agents),
+            ("curves.race_episodes", self.race_episodes),
+        ] {
+            if v == 0 {
+                bail!("{key} must be at least 1");
+            }
+        }
+        Ok(())
+    }
 }
 
 /// `[[meta]]` tables, or one `[meta]` table (experiment files before two seeds).
@@ -235,6 +288,9 @@ impl ExperimentSpec {
     pub fn validate(&self) -> Result<()> {
         if self.runs.is_empty() {
             bail!("no [[run]]");
+        }
+        if let Some(c) = &self.curves {
+            c.validate()?;
         }
         for (i, r) in self.runs.iter().enumerate() {
             if self.runs[..i].iter().any(|o| o.label == r.label) {

@@ -1,0 +1,226 @@
+//! Robustness curves: one number per policy (or method) and severity rung, with a
+//! 95% percentile bootstrap over robots, for each benchmark:
+//! - `ttf`: Time to Fall averaged over the table's cells (loads x terrain x push),
+//!   each cell weighted equally (robots resampled within their cell);
+//! - `platform`: success rate pooled over the rung's heights;
+//! - `race`: the returns' 0.25 quantile (the worst case the paper's figure reads).
+
+use serde::Serialize;
+
+use super::stats::{bootstrap_strata, cell_seed, mean, quantile, Estimate};
+use crate::eval::{PlatformReport, RaceReport, TtfReport};
+
+/// One point of a robustness curve.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CurvePoint {
+    pub benchmark: &'static str,
+    pub metric: &'static str,
+    pub policy: String,
+    pub severity: usize,
+    pub estimate: Estimate,
+    /// Robots (or race episodes) behind the point.
+    pub units: usize,
+}
+
+/// Bootstrap settings.
+#[derive(Debug, Clone, Copy)]
+pub struct Resampling {
+    pub resamples: usize,
+    pub level: f64,
+    pub seed: u64,
+}
+
+impl Default for Resampling {
+    fn default() -> Self {
+        Resampling {
+            resamples: 1000,
+            level: 0.95,
+            seed: 0,
+        }
+    }
+}
+
+/// Mean over strata of each stratum's mean.
+fn mean_of_means(strata: &[Vec<f64>]) -> f64 {
+    mean(&strata.iter().map(|s| mean(s)).collect::<Vec<_>>())
+}
+
+/// TTF of the runs `policies` (a method's seeds, pooled as `label`) over every
+/// cell of `report` (robots' survived fraction; every run and cell weighted
+/// equally); `strict` takes the strict fall definition.
+pub fn ttf_point(
+    report: &TtfReport,
+    policies: &[String],
+    label: &str,
+    severity: usize,
+    strict: bool,
+    r: Resampling,
+) -> Option<CurvePoint> {
+    let strata: Vec<Vec<f64>> = report
+        .cells
+        .iter()
+        .filter(|c| policies.contains(&c.policy))
+        .map(|c| {
+            let steps = if strict {
+                &c.strict_steps_per_robot
+            } else {
+                &c.steps_per_robot
+            };
+            let full = c.episode_steps.max(1) as f64;
+            steps.iter().map(|&s| s as f64 / full).collect()
+        })
+        .collect();
+    if strata.is_empty() {
+        return None;
+    }
+    let name = format!("curve/ttf/{label}/{severity}/{strict}");
+    Some(CurvePoint {
+        benchmark: "ttf",
+        metric: if strict { "strict_ttf" } else { "ttf" },
+        policy: label.to_string(),
+        severity,
+        units: strata.iter().map(Vec::len).sum(),
+        estimate: bootstrap_strata(
+            &strata,
+            mean_of_means,
+            r.resamples,
+            r.level,
+            cell_seed(r.seed, &name),
+        ),
+    })
+}
+
+/// Success (%) of the runs `policies` pooled over the heights of `report`
+/// (every run and height weighted equally).
+pub fn platform_point(
+    report: &PlatformReport,
+    policies: &[String],
+    label: &str,
+    severity: usize,
+    r: Resampling,
+) -> Option<CurvePoint> {
+    let strata: Vec<Vec<f64>> = report
+        .cells
+        .iter()
+        .filter(|c| policies.contains(&c.policy))
+        .map(|c| {
+            c.success_per_robot
+                .iter()
+                .map(|&s| if s { 100.0 } else { 0.0 })
+                .collect()
+        })
+        .collect();
+    if strata.is_empty() {
+        return None;
+    }
+    let name = format!("curve/platform/{label}/{severity}");
+    Some(CurvePoint {
+        benchmark: "platform",
+        metric: "success_pct",
+        policy: label.to_string(),
+        severity,
+        units: strata.iter().map(Vec::len).sum(),
+        estimate: bootstrap_strata(
+            &strata,
+            mean_of_means,
+            r.resamples,
+            r.level,
+            cell_seed(r.seed, &name),
+        ),
+    })
+}
+
+/// The 0.25 quantile of the returns of the race rows `policies` pooled (as the
+/// race table pools a method's seeds), resampled within each row.
+pub fn race_point(
+    report: &RaceReport,
+    policies: &[String],
+    label: &str,
+    severity: usize,
+    r: Resampling,
+) -> Option<CurvePoint> {
+    let strata: Vec<Vec<f64>> = report
+        .rows
+        .iter()
+        .filter(|row| policies.contains(&row.name))
+        .map(|row| row.returns.clone())
+        .collect();
+    if strata.is_empty() {
+        return None;
+    }
+    let q25_pooled = |s: &[Vec<f64>]| quantile(&s.concat(), 0.25);
+    let name = format!("curve/race/{label}/{severity}");
+    Some(CurvePoint {
+        benchmark: "race",
+        metric: "return_q25",
+        policy: label.to_string(),
+        severity,
+        units: strata.iter().map(Vec::len).sum(),
+        estimate: bootstrap_strata(
+            &strata,
+            q25_pooled,
+            r.resamples,
+            r.level,
+            cell_seed(r.seed, &name),
+        ),
+    })
+}
+
+/// `benchmark,metric,policy,severity,value,lo,hi,units` rows.
+pub fn curve_csv(points: &[CurvePoint]) -> String {
+    let mut s = String::from("benchmark,metric,policy,severity,value,lo,hi,units\n");
+    for p in points {
+        s.push_str(&format!(
+            "{},{},{},{},{},{}\n",
+            p.benchmark,
+            p.metric,
+            p.policy,
+            p.severity,
+            p.estimate.csv(4),
+            p.units
+        ));
+    }
+    s
+}
+
+/// A markdown table: a row per policy, a column per rung.
+pub fn curve_markdown(points: &[CurvePoint], digits: usize) -> String {
+    let mut rungs: Vec<usize> = points.iter().map(|p| p.severity).collect();
+    rungs.sort_unstable();
+    rungs.dedup();
+    let mut policies: Vec<&str> = Vec::new();
+    for p in points {
+        if !policies.contains(&p.policy.as_str()) {
+            policies.push(&p.policy);
+        }
+    }
+    let mut s = String::from("| policy |");
+    for r in &rungs {
+        s.push_str(&format!(" rung {r} |"));
+    }
+    s.push_str("\n|---|");
+    s.push_str(&"---:|".repeat(rungs.len()));
+    s.push('\n');
+    for name in policies {
+        s.push_str(&format!("| {name} |"));
+        for r in &rungs {
+            match points.iter().find(|p| p.policy == name && p.severity == *r) {
+                Some(p) => s.push_str(&format!(" {} |", p.estimate.show(digits))),
+                None => s.push_str(" - |"),
+            }
+        }
+        s.push('\n');
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cells_weigh_equally_whatever_their_size() {
+        let strata = vec![vec![1.0, 1.0, 1.0, 1.0], vec![0.0]];
+        assert_eq!(mean_of_means(&strata), 0.5);
+    }
+}

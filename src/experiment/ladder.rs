@@ -1,0 +1,150 @@
+//! The experiment's robustness curves: every table's methods on every rung of
+//! the severity ladder (`[curves]`). Rung 0 reads the tables' own evaluations;
+//! each higher rung runs the benchmarks again with that rung's perturbations,
+//! on as many robots as `[curves]` gives.
+
+use anyhow::Result;
+
+use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
+use super::pooled::methods_of;
+use super::spec::{CurvesSpec, ExperimentSpec};
+use super::{load_runs, seeds};
+use crate::eval::{
+    evaluate_platform, evaluate_race, evaluate_ttf, MetaConfig, PlatformOptions, PlatformReport,
+    RaceOptions, RaceReport, TtfOptions, TtfReport,
+};
+
+/// The three benchmarks' reports at one rung.
+pub(super) struct RungReports<'a> {
+    pub ttf: Option<&'a TtfReport>,
+    pub platform: Option<&'a PlatformReport>,
+    pub race: Option<&'a RaceReport>,
+}
+
+/// The evaluations the tables ran (rung 0), which the higher rungs repeat.
+pub(super) struct TableRuns<'a> {
+    pub ttf: (&'a TtfOptions, Vec<String>),
+    pub platform: (&'a PlatformOptions, Vec<String>),
+    pub race: (&'a RaceOptions, Vec<String>),
+    pub metas: &'a [MetaConfig],
+}
+
+/// Every method's points at rung `severity` from `reports`.
+fn points_at(
+    spec: &ExperimentSpec,
+    severity: usize,
+    reports: &RungReports,
+    labels: &TableRuns,
+) -> Vec<CurvePoint> {
+    let b = &spec.bootstrap;
+    let r = Resampling {
+        resamples: b.resamples,
+        level: b.level,
+        seed: b.seed,
+    };
+    let mut out = Vec::new();
+    if let Some(rep) = reports.ttf {
+        for m in methods_of(spec, &labels.ttf.1) {
+            out.extend(ttf_point(rep, &m.seeds, &m.label, severity, false, r));
+            out.extend(ttf_point(rep, &m.seeds, &m.label, severity, true, r));
+        }
+    }
+    if let Some(rep) = reports.platform {
+        for m in methods_of(spec, &labels.platform.1) {
+            out.extend(platform_point(rep, &m.seeds, &m.label, severity, r));
+        }
+    }
+    if let Some(rep) = reports.race {
+        let mut names = labels.race.1.clone();
+        names.extend(labels.metas.iter().map(|m| m.name.clone()));
+        for m in methods_of(spec, &names) {
+            out.extend(race_point(rep, &m.seeds, &m.label, severity, r));
+        }
+    }
+    out
+}
+
+/// One rung above 0: the tables' evaluations with the rung's perturbations.
+fn evaluate_rung(
+    spec: &ExperimentSpec,
+    c: &CurvesSpec,
+    severity: usize,
+    tables: &TableRuns,
+) -> Result<Vec<CurvePoint>> {
+    let ladder = c.ladder()?;
+    let rung = ladder.rung(severity)?;
+    let ttf = if tables.ttf.1.is_empty() {
+        None
+    } else {
+        let opts = TtfOptions {
+            seeds: seeds(spec.ttf.first_seed, c.ttf_seeds),
+            repeats: c.ttf_repeats,
+            params: rung.apply(&tables.ttf.0.params),
+            ..tables.ttf.0.clone()
+        };
+        Some(evaluate_ttf(&load_runs(spec, &tables.ttf.1)?, &opts, |_| {})?)
+    };
+    let platform = if tables.platform.1.is_empty() {
+        None
+    } else {
+        let opts = PlatformOptions {
+            heights_m: rung.platform_heights_m.clone(),
+            seeds: seeds(spec.platform.first_seed, c.platform_seeds),
+            repeats: c.platform_repeats,
+            params: rung.apply(&tables.platform.0.params),
+            ..tables.platform.0.clone()
+        };
+        Some(evaluate_platform(
+            &load_runs(spec, &tables.platform.1)?,
+            &opts,
+            |_| {},
+        )?)
+    };
+    let race = if tables.race.1.is_empty() {
+        None
+    } else {
+        let opts = RaceOptions {
+            agents: c.race_agents,
+            episodes: c.race_episodes,
+            params: rung.apply(&tables.race.0.params),
+            ..tables.race.0.clone()
+        };
+        let policies = load_runs(spec, &tables.race.1)?;
+        Some(evaluate_race(&policies, tables.metas, &opts, |_| {})?)
+    };
+    let reports = RungReports {
+        ttf: ttf.as_ref(),
+        platform: platform.as_ref(),
+        race: race.as_ref(),
+    };
+    Ok(points_at(spec, severity, &reports, tables))
+}
+
+/// Every rung of `c`: rung 0 from the tables' `reports`, the others evaluated.
+pub(super) fn evaluate_curves(
+    spec: &ExperimentSpec,
+    c: &CurvesSpec,
+    reports: &RungReports,
+    tables: &TableRuns,
+) -> Result<Vec<CurvePoint>> {
+    let mut points = Vec::new();
+    for &s in &c.severity {
+        eprintln!("  severity rung {s}");
+        let at = if s == 0 {
+            points_at(spec, 0, reports, tables)
+        } else {
+            evaluate_rung(spec, c, s, tables)?
+        };
+        for p in &at {
+            eprintln!(
+                "    {:<8} {:<11} {:<22} {}",
+                p.benchmark,
+                p.metric,
+                p.policy,
+                p.estimate.show(3)
+            );
+        }
+        points.extend(at);
+    }
+    Ok(points)
+}
