@@ -1,6 +1,7 @@
 //! The `rall` command line (clap). Each subcommand lives in its own file.
 
 pub mod bench;
+pub mod calibrate;
 pub mod eval;
 pub mod experiment;
 pub mod export;
@@ -37,6 +38,9 @@ pub enum Command {
     Export(export::ExportArgs),
     /// Measure throughput (env steps/s versus the raw physics limit).
     Bench(bench::BenchArgs),
+    /// Set per-joint risk thresholds from a walking policy's gait (a quantile of |joint
+    /// velocity|, |acceleration|, |torque| per joint) and write them into a config.
+    CalibrateRisk(calibrate::CalibrateRiskArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -48,5 +52,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Experiment(args) => experiment::run(&args),
         Command::Export(args) => export::run(&args),
         Command::Bench(args) => bench::run(&args),
+        Command::CalibrateRisk(args) => calibrate::run(&args),
     }
 }

@@ -114,6 +114,11 @@ impl Default for RewardConfig {
 pub struct RiskTerm {
     pub threshold: f64,
     pub weight: f64,
+    /// Joint terms only: one threshold per joint (SDK order) instead of `threshold`
+    /// for the largest joint; the term is crossed when any joint passes its own
+    /// (`rall calibrate-risk` sets them from a walking policy's gait).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub per_joint: Option<[f64; crate::robot::NUM_JOINTS]>,
 }
 
 /// Risk penalties (paper table II and eq. 2).
@@ -141,22 +146,27 @@ impl Default for RiskConfig {
             base_pitch: RiskTerm {
                 threshold: 0.5,
                 weight: 20.0,
+                per_joint: None,
             },
             base_roll: RiskTerm {
                 threshold: 1.0,
                 weight: 100.0,
+                per_joint: None,
             },
             joint_velocity: RiskTerm {
                 threshold: 10.0,
                 weight: 100.0,
+                per_joint: None,
             },
             joint_acceleration: RiskTerm {
                 threshold: 1000.0,
                 weight: 100.0,
+                per_joint: None,
             },
             joint_torque: RiskTerm {
                 threshold: 40.0,
                 weight: 150.0,
+                per_joint: None,
             },
         }
     }
@@ -404,12 +414,24 @@ impl EnvConfig {
             "risk.probability",
             format!("must be in [0, 1], got {p}"),
         )?;
-        for (name, t) in self.risk.terms() {
+        for (i, (name, t)) in self.risk.terms().into_iter().enumerate() {
             check(
                 t.threshold.is_finite() && t.threshold >= 0.0,
                 &format!("risk.{name}.threshold"),
                 "must be >= 0",
             )?;
+            if let Some(per) = t.per_joint {
+                check(
+                    super::risk::RISK_TERMS[i].per_joint.is_some(),
+                    &format!("risk.{name}.per_joint"),
+                    "applies to the joint terms only (joint_velocity, joint_acceleration, joint_torque)",
+                )?;
+                check(
+                    per.iter().all(|v| v.is_finite() && *v > 0.0),
+                    &format!("risk.{name}.per_joint"),
+                    "every joint's threshold must be finite and > 0",
+                )?;
+            }
             check(
                 t.weight.is_finite() && t.weight >= 0.0,
                 &format!("risk.{name}.weight"),

@@ -6,12 +6,16 @@ use rand::Rng;
 
 use super::config::{RiskConfig, RiskTerm};
 use super::state::RobotState;
+use crate::robot::NUM_JOINTS;
 
 /// One risk term: its name, what it measures, and its threshold and weight in the config.
 pub struct RiskTermDef {
     pub name: &'static str,
     pub measure: fn(&RobotState) -> f64,
     pub setting: fn(&RiskConfig) -> RiskTerm,
+    /// Joint terms: the per-joint quantity (its absolute value is compared with
+    /// `RiskTerm::per_joint` when the config sets it).
+    pub per_joint: Option<fn(&RobotState) -> &[f64; NUM_JOINTS]>,
 }
 
 pub const NUM_RISK_TERMS: usize = 5;
@@ -22,26 +26,31 @@ pub const RISK_TERMS: [RiskTermDef; NUM_RISK_TERMS] = [
         name: "base_pitch",
         measure: |s| s.pitch_rad.abs(),
         setting: |c| c.base_pitch,
+        per_joint: None,
     },
     RiskTermDef {
         name: "base_roll",
         measure: |s| s.roll_rad.abs(),
         setting: |c| c.base_roll,
+        per_joint: None,
     },
     RiskTermDef {
         name: "joint_velocity",
         measure: |s| max_abs(&s.qd_rad_s),
         setting: |c| c.joint_velocity,
+        per_joint: Some(|s| &s.qd_rad_s),
     },
     RiskTermDef {
         name: "joint_acceleration",
         measure: |s| max_abs(&s.qdd_rad_s2),
         setting: |c| c.joint_acceleration,
+        per_joint: Some(|s| &s.qdd_rad_s2),
     },
     RiskTermDef {
         name: "joint_torque",
         measure: |s| max_abs(&s.torques_nm),
         setting: |c| c.joint_torque,
+        per_joint: Some(|s| &s.torques_nm),
     },
 ];
 
@@ -80,7 +89,14 @@ pub fn evaluate_risk<R: Rng>(s: &RobotState, cfg: &RiskConfig, rng: &mut R) -> R
     let mut out = RiskOutcome::default();
     for (i, def) in RISK_TERMS.iter().enumerate() {
         let term = (def.setting)(cfg);
-        if measures[i] > term.threshold {
+        let crossed = match (term.per_joint, def.per_joint) {
+            (Some(limits), Some(quantity)) => quantity(s)
+                .iter()
+                .zip(&limits)
+                .any(|(x, limit)| x.abs() > *limit),
+            _ => measures[i] > term.threshold,
+        };
+        if crossed {
             out.exceeded[i] = true;
             // Draw only when exceeded: the stream of draws is the same whatever p is.
             if rng.gen::<f64>() < cfg.probability {
