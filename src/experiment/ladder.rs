@@ -8,10 +8,11 @@ use anyhow::Result;
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
+use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::{load_runs, seeds};
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_ttf, MetaConfig, PlatformOptions, PlatformReport,
-    RaceOptions, RaceReport, TtfOptions, TtfReport,
+    evaluate_race, MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport,
+    TtfOptions, TtfReport,
 };
 
 /// The three benchmarks' reports at one rung.
@@ -82,7 +83,7 @@ fn evaluate_rung(
             params: rung.apply(&tables.ttf.0.params),
             ..tables.ttf.0.clone()
         };
-        Some(evaluate_ttf(&load_runs(spec, &tables.ttf.1)?, &opts, |_| {})?)
+        Some(evaluate_ttf_runs(spec, &tables.ttf.1, &opts, |_| {})?.0)
     };
     let platform = if tables.platform.1.is_empty() {
         None
@@ -94,11 +95,7 @@ fn evaluate_rung(
             params: rung.apply(&tables.platform.0.params),
             ..tables.platform.0.clone()
         };
-        Some(evaluate_platform(
-            &load_runs(spec, &tables.platform.1)?,
-            &opts,
-            |_| {},
-        )?)
+        Some(evaluate_platform_runs(spec, &tables.platform.1, &opts, |_| {})?.0)
     };
     let race = if tables.race.1.is_empty() {
         None

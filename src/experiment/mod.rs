@@ -6,6 +6,7 @@
 
 pub mod curve_plots;
 pub mod curves;
+pub mod kcheck;
 mod ladder;
 pub mod plots;
 pub mod pooled;
@@ -24,7 +25,7 @@ use anyhow::{bail, Context, Result};
 use crate::config::TrainConfig;
 use crate::env::{build_scene, EnvConfig, VecEnv};
 use crate::eval::{
-    evaluate_platform, evaluate_race, evaluate_tracking, evaluate_ttf, tracking_env,
+    evaluate_race, evaluate_tracking, tracking_env,
     with_randomization, ActionMode, GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions,
     RaceOptions, ScenarioParams, TtfOptions,
 };
@@ -743,23 +744,22 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         params: ScenarioParams::default(),
     };
     let ttf_methods = have(&spec.ttf.methods);
+    let mut spread = Vec::new();
     let ttf = if ttf_methods.is_empty() {
         None
     } else {
-        Some(evaluate_ttf(
-            &load_runs(spec, &ttf_methods)?,
-            &ttf_opts,
-            |c| {
-                eprintln!(
-                    "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
-                    c.load.name(),
-                    c.terrain,
-                    c.push,
-                    c.policy,
-                    c.ttf
-                )
-            },
-        )?)
+        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, |c| {
+            eprintln!(
+                "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
+                c.load.name(),
+                c.terrain,
+                c.push,
+                c.policy,
+                c.ttf
+            )
+        })?;
+        spread.extend(s);
+        Some(report)
     };
 
     stage(3, "table II: platform drops");
@@ -776,16 +776,15 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let platform = if platform_methods.is_empty() {
         None
     } else {
-        Some(evaluate_platform(
-            &load_runs(spec, &platform_methods)?,
-            &platform_opts,
-            |c| {
+        let (report, s) =
+            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, |c| {
                 eprintln!(
                     "  {:.2} m {:<14} success {:.1}%",
                     c.height_m, c.policy, c.success_pct
                 )
-            },
-        )?)
+            })?;
+        spread.extend(s);
+        Some(report)
     };
 
     stage(
@@ -878,6 +877,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         start.elapsed().as_secs_f64(),
     );
     results.set_curves(spec, curves)?;
+    results.checkpoint_spread = spread;
     Ok(results)
 }
 

@@ -8,6 +8,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::curves::{curve_csv, curve_markdown, CurvePoint};
+use super::kcheck::CheckpointSpread;
 use super::pooled::{show_with_seeds, MethodTables};
 use super::spec::{common_ground_name, ExperimentSpec, RunSpec};
 use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};
@@ -163,6 +164,9 @@ pub struct ExperimentResults {
     /// The ladder behind the curves.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ladder: Option<Ladder>,
+    /// With `[checkpoints]`: each run's number at each of its last K checkpoints.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub checkpoint_spread: Vec<CheckpointSpread>,
     /// The paper's number at rung 0 of each curve that has one: (benchmark, method, value).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub curve_paper: Vec<(String, String, f64)>,
@@ -353,6 +357,7 @@ impl ExperimentResults {
             curves: Vec::new(),
             ladder: None,
             curve_paper: Vec::new(),
+            checkpoint_spread: Vec::new(),
             evaluation_wall_clock_min: eval_wall_s / 60.0,
         }
     }
@@ -376,6 +381,32 @@ impl ExperimentResults {
         }
         self.curves = points;
         Ok(())
+    }
+
+    fn spread_markdown(&self, s: &mut String) {
+        if self.checkpoint_spread.is_empty() {
+            return;
+        }
+        let _ = writeln!(s, "## From checkpoint to checkpoint\n");
+        let _ = writeln!(s, "Every run's number in tables I and II is the mean over its last checkpoints (below, newest first), each judged on its share of the robots; this is how much a single checkpoint would have moved it. The race and the tracking judge each run's `[selection]` policy (a secondary view).\n");
+        let _ = writeln!(s, "| benchmark | run | checkpoints | per checkpoint | min - max |");
+        let _ = writeln!(s, "|---|---|---|---|---|");
+        for c in &self.checkpoint_spread {
+            let digits = if c.benchmark == "ttf" { 3 } else { 1 };
+            let its: Vec<String> = c.iterations.iter().map(|i| i.to_string()).collect();
+            let vals: Vec<String> = c.values.iter().map(|v| format!("{v:.digits$}")).collect();
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {:.digits$} - {:.digits$} |",
+                c.benchmark,
+                c.run,
+                its.join(", "),
+                vals.join(", "),
+                c.min(),
+                c.max()
+            );
+        }
+        let _ = writeln!(s);
     }
 
     fn curves_markdown(&self, s: &mut String) {
@@ -466,6 +497,7 @@ impl ExperimentResults {
         self.common_ground_markdown(&mut s);
 
         self.curves_markdown(&mut s);
+        self.spread_markdown(&mut s);
         self.methods_markdown(&mut s);
         let _ = writeln!(s, "## Per training run\n");
         let _ = writeln!(
@@ -818,18 +850,52 @@ impl ExperimentResults {
         if !self.curves.is_empty() {
             files.push(("curves.csv", curve_csv(&self.curves)));
         }
+        if !self.checkpoint_spread.is_empty() {
+            let mut csv = String::from("benchmark,run,iteration,value\n");
+            for c in &self.checkpoint_spread {
+                for (it, v) in c.iterations.iter().zip(&c.values) {
+                    csv.push_str(&format!("{},{},{it},{v:.4}\n", c.benchmark, csv_field(&c.run)));
+                }
+            }
+            files.push(("checkpoints.csv", csv));
+        }
         files
     }
 
-    /// Writes README.md, the CSVs, results.json and figures/ into `dir`.
+    /// Writes README.md, the CSVs, results.json and figures/ into `dir`: first all
+    /// into a fresh folder beside it, then each file into place by a rename, so a
+    /// failure while writing leaves what `dir` held untouched.
     pub fn write(&self, dir: &Path) -> Result<()> {
+        let name = dir
+            .file_name()
+            .map_or("results".into(), |n| n.to_string_lossy().into_owned());
+        let staging = dir.with_file_name(format!(".{name}.rall-tmp"));
+        if staging.exists() {
+            std::fs::remove_dir_all(&staging)
+                .with_context(|| format!("removing {}", staging.display()))?;
+        }
+        self.write_into(&staging)?;
+        std::fs::create_dir_all(dir.join("figures"))
+            .with_context(|| format!("creating {}", dir.display()))?;
+        for sub in ["", "figures"] {
+            for entry in std::fs::read_dir(staging.join(sub))? {
+                let path = entry?.path();
+                if path.is_file() {
+                    let to = dir.join(sub).join(path.file_name().expect("a file name"));
+                    std::fs::rename(&path, &to)
+                        .with_context(|| format!("moving {} to {}", path.display(), to.display()))?;
+                }
+            }
+        }
+        std::fs::remove_dir_all(&staging).with_context(|| format!("removing {}", staging.display()))
+    }
+
+    fn write_into(&self, dir: &Path) -> Result<()> {
         std::fs::create_dir_all(dir.join("figures"))
             .with_context(|| format!("creating {}", dir.display()))?;
         let write = |name: &str, text: &str| -> Result<()> {
             let path = dir.join(name);
-            let tmp = dir.join(format!(".{name}.tmp"));
-            std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-            std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))
+            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
         };
         write("README.md", &self.markdown())?;
         for (name, text) in self.csv_files() {

@@ -39,9 +39,21 @@ pub struct ExperimentSpec {
     pub bootstrap: BootstrapSpec,
     #[serde(default)]
     pub paper: PaperNumbers,
+    /// Headline numbers over each run's last K checkpoints (`[checkpoints]`); absent:
+    /// each run's final policy alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checkpoints: Option<CheckpointsSpec>,
     /// Robustness curves over the severity ladder (`[curves]`); absent: the tables only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curves: Option<CurvesSpec>,
+}
+
+/// A run's headline: its last `last` checkpoints, `every` iterations apart.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CheckpointsSpec {
+    pub last: usize,
+    pub every: usize,
 }
 
 /// Every table's methods on every listed rung of the severity ladder. Rung 0 is
@@ -291,6 +303,14 @@ impl ExperimentSpec {
         }
         if let Some(c) = &self.curves {
             c.validate()?;
+        }
+        if let Some(c) = &self.checkpoints {
+            if c.last == 0 || c.every == 0 {
+                bail!("checkpoints.last and checkpoints.every must be at least 1");
+            }
+            if c.last > 50 {
+                bail!("checkpoints.last = {} is more than 50", c.last);
+            }
         }
         for (i, r) in self.runs.iter().enumerate() {
             if self.runs[..i].iter().any(|o| o.label == r.label) {
