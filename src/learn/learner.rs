@@ -8,7 +8,9 @@ use super::collective::{Collective, SingleProcess};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
 use super::normalizer::EmpiricalNormalizer;
-use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
+use super::ppo::{
+    self, check_count, check_f32, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace,
+};
 use super::risk::Distortion;
 use super::storage::{ActOutput, Rollout};
 use anyhow::{bail, ensure, Result};
@@ -217,10 +219,14 @@ impl LearnerConfig {
                 .map_err(|e| anyhow::anyhow!("learner.cvar_eta: {e}"))?;
         }
         self.distortion().validate()?;
+        self.ppo.validate()?;
         ensure!(
             !self.critic_hidden.is_empty(),
             "critic_hidden must not be empty"
         );
+        self.validate_sizes()?;
+        check_f32("learner.kappa", self.kappa, 1e-12, 1e6)?;
+        check_f32("learner.init_noise_std", self.init_noise_std, 1e-12, 1e3)?;
         ensure!(
             self.num_cos > 0
                 && self.num_taus > 0
@@ -266,6 +272,71 @@ impl LearnerConfig {
                 a.learning_rate > 0.0 && a.epochs > 0 && a.mini_batches > 0,
                 "learner.adaptation: learning_rate, epochs and mini_batches must be positive"
             );
+        }
+        Ok(())
+    }
+}
+
+/// The largest hidden layer, latent or tau basis a config may ask for.
+pub const MAX_LAYER_WIDTH: usize = 8192;
+/// The most hidden layers a network may have.
+pub const MAX_HIDDEN_LAYERS: usize = 16;
+
+fn check_hidden(key: &str, sizes: &[usize]) -> Result<()> {
+    ensure!(
+        sizes.len() <= MAX_HIDDEN_LAYERS,
+        "{key} has {} layers, at most {MAX_HIDDEN_LAYERS}",
+        sizes.len()
+    );
+    for (i, &w) in sizes.iter().enumerate() {
+        check_count(&format!("{key}[{i}]"), w, 1, MAX_LAYER_WIDTH)?;
+    }
+    Ok(())
+}
+
+impl LearnerConfig {
+    /// Layer widths and sample counts within their bounds (named by key).
+    fn validate_sizes(&self) -> Result<()> {
+        check_hidden("learner.actor_hidden", &self.actor_hidden)?;
+        check_hidden("learner.critic_hidden", &self.critic_hidden)?;
+        for (key, v) in [
+            ("learner.num_cos", self.num_cos),
+            ("learner.num_taus", self.num_taus),
+            ("learner.num_target_taus", self.num_target_taus),
+            ("learner.num_value_taus", self.num_value_taus),
+        ] {
+            check_count(key, v, 1, MAX_LAYER_WIDTH)?;
+        }
+        if let Some(e) = &self.encoder {
+            check_hidden("learner.encoder.hidden", &e.hidden)?;
+            check_count(
+                "learner.encoder.latent_dim",
+                e.latent_dim,
+                1,
+                MAX_LAYER_WIDTH,
+            )?;
+        }
+        if let Some(a) = &self.adaptation {
+            check_hidden("learner.adaptation.hidden", &a.hidden)?;
+            check_f32(
+                "learner.adaptation.learning_rate",
+                a.learning_rate,
+                1e-12,
+                1.0,
+            )?;
+            check_count("learner.adaptation.epochs", a.epochs, 1, 1000)?;
+            check_count(
+                "learner.adaptation.mini_batches",
+                a.mini_batches,
+                1,
+                1 << 20,
+            )?;
+            check_count(
+                "learner.adaptation.iterations",
+                a.iterations,
+                0,
+                100_000_000,
+            )?;
         }
         Ok(())
     }
