@@ -781,6 +781,37 @@ impl Curriculum {
         self.levels.copy_from_slice(levels);
         Ok(())
     }
+    /// Levels, types and every env's RNG, for an exact resume.
+    pub fn snapshot(&self, w: &mut super::snapshot::StateWriter) {
+        w.usize(self.levels.len());
+        for ((l, t), r) in self.levels.iter().zip(&self.types).zip(&self.rngs) {
+            w.usize(*l);
+            w.usize(*t);
+            w.rng(r);
+        }
+    }
+
+    /// Restores [`Curriculum::snapshot`] (same env count, levels in range).
+    pub fn restore(&mut self, r: &mut super::snapshot::StateReader) -> anyhow::Result<()> {
+        let n = r.usize()?;
+        anyhow::ensure!(
+            n == self.levels.len(),
+            "a curriculum of {n} envs for {} envs",
+            self.levels.len()
+        );
+        for e in 0..n {
+            let (level, terrain_type) = (r.usize()?, r.usize()?);
+            anyhow::ensure!(
+                level < self.num_levels,
+                "stored terrain level {level} but the terrain has {} levels",
+                self.num_levels
+            );
+            self.levels[e] = level;
+            self.types[e] = terrain_type;
+            self.rngs[e] = r.rng()?;
+        }
+        Ok(())
+    }
     pub fn level(&self, env: usize) -> usize {
         self.levels[env]
     }

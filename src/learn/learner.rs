@@ -364,6 +364,10 @@ fn normalized_rollout<'a>(
     copy
 }
 
+/// Layout tag of [`Learner::exact_state`] and its length in bytes.
+const EXACT_STATE_TAG: &[u8; 8] = b"rall-ls1";
+const EXACT_STATE_LEN: usize = 8 + 32 + 8 + 16 + 8 + 8;
+
 /// One named `f32` tensor of the learner state (row-major).
 #[derive(Clone, Debug, PartialEq)]
 pub struct NamedTensor {
@@ -609,7 +613,7 @@ impl Learner {
 
     /// Everything needed to resume: weights (`actor.*`, `critic.*`), Adam moments
     /// (`adam.m.*`, `adam.v.*`), `adam.step` and `lr` (shape `[1]`).
-    /// (The update RNG is not included: a resumed run reseeds it.)
+    /// (The update RNG and the integer step counts are [`Self::exact_state`].)
     pub fn state(&self) -> Vec<NamedTensor> {
         let mut out = Vec::new();
         let groups: [(&str, &ParamSet, &AdamState); 2] = [
@@ -655,6 +659,44 @@ impl Learner {
             out.extend(n.state());
         }
         out
+    }
+
+    /// What a bit-identical resume needs beyond [`Self::state`], as bytes: the
+    /// update RNG (ChaCha8 seed, stream, word position) and the optimisers' step
+    /// counts as integers ([`Self::state`] keeps `adam.step` as f32 for older readers).
+    pub fn exact_state(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(EXACT_STATE_LEN);
+        out.extend_from_slice(EXACT_STATE_TAG);
+        out.extend_from_slice(&self.rng.get_seed());
+        out.extend_from_slice(&self.rng.get_stream().to_le_bytes());
+        out.extend_from_slice(&self.rng.get_word_pos().to_le_bytes());
+        out.extend_from_slice(&self.opt.step.to_le_bytes());
+        let adapt_step = self.adapt_opt.as_ref().map_or(0, |a| a.step);
+        out.extend_from_slice(&adapt_step.to_le_bytes());
+        out
+    }
+
+    /// Restores [`Self::exact_state`] (after [`Self::load_state`]).
+    pub fn load_exact_state(&mut self, bytes: &[u8]) -> Result<()> {
+        ensure!(
+            bytes.len() == EXACT_STATE_LEN && bytes.starts_with(EXACT_STATE_TAG),
+            "the learner's exact state has {} bytes, expected {EXACT_STATE_LEN} starting with {:?}",
+            bytes.len(),
+            String::from_utf8_lossy(EXACT_STATE_TAG)
+        );
+        let rest = &bytes[EXACT_STATE_TAG.len()..];
+        let seed: [u8; 32] = rest[..32].try_into().expect("length checked");
+        let u64_at = |at: usize| u64::from_le_bytes(rest[at..at + 8].try_into().expect("checked"));
+        let word_pos = u128::from_le_bytes(rest[40..56].try_into().expect("length checked"));
+        let mut rng = ChaCha8Rng::from_seed(seed);
+        rng.set_stream(u64_at(32));
+        rng.set_word_pos(word_pos);
+        self.rng = rng;
+        self.opt.step = u64_at(56);
+        if let Some(a) = &mut self.adapt_opt {
+            a.step = u64_at(64);
+        }
+        Ok(())
     }
 
     /// Restores [`Self::state`]. Refuses (changing nothing) a missing tensor or a
