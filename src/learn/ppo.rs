@@ -150,9 +150,9 @@ impl PpoConfig {
             1e6,
         )?;
         check_f32("learner.ppo.entropy_coef", self.entropy_coef, -1e3, 1e3)?;
-        check_f32("learner.ppo.learning_rate", self.learning_rate, 1e-12, 1.0)?;
+        check_f32("learner.ppo.learning_rate", self.learning_rate, 0.0, 1.0)?;
         check_f32("learner.ppo.desired_kl", self.desired_kl, 1e-12, 1e3)?;
-        check_f32("learner.ppo.min_lr", self.min_lr, 1e-12, 1.0)?;
+        check_f32("learner.ppo.min_lr", self.min_lr, 0.0, 1.0)?;
         check_f32("learner.ppo.max_lr", self.max_lr, 1e-12, 1.0)?;
         anyhow::ensure!(
             self.min_lr <= self.max_lr,
