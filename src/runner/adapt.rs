@@ -267,7 +267,8 @@ pub fn restart_adaptation(dir: &RunDir) -> Result<usize> {
         "latest-at-{}.safetensors",
         loaded.progress.iteration
     ));
-    std::fs::copy(&path, &old).with_context(|| format!("keeping {}", old.display()))?;
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    crate::fsio::write_atomic(&old, &bytes)?;
     for (it, p) in dir.checkpoints_by_iteration() {
         if it > phase1_end {
             let to = discarded.join(p.file_name().context("checkpoint without a name")?);
