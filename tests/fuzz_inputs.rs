@@ -197,16 +197,17 @@ fn mutated_checkpoints_never_panic_the_loader() {
         .unwrap();
 }
 
-/// The decoded contents of a checkpoint file (tensors bit for bit, state blobs,
-/// metadata), or `None` when the loader refuses it.
-fn decoded(
-    bytes: &[u8],
-) -> Option<(
+/// A checkpoint's contents as compared by the flip tests: tensors (name,
+/// shape, bits), state blobs, sorted metadata, whether checksums were verified.
+type Decoded = (
     Vec<(String, Vec<usize>, Vec<u32>)>,
     Vec<(String, Vec<u8>)>,
     Vec<(String, String)>,
     bool,
-)> {
+);
+
+/// The decoded contents of a checkpoint file, or `None` when the loader refuses it.
+fn decoded(bytes: &[u8]) -> Option<Decoded> {
     let c = rall::learn::decode_checkpoint(bytes, Path::new("flipped.safetensors")).ok()?;
     let tensors = c
         .tensors

@@ -47,8 +47,11 @@ fn metrics_without_timing(run: &Path) -> Vec<Vec<String>> {
         .collect()
 }
 
+/// Named tensors as bit patterns, and named state blobs.
+type State = (Vec<(String, Vec<u32>)>, Vec<(String, Vec<u8>)>);
+
 /// Every tensor and state blob of the run's final checkpoint, bit for bit.
-fn final_state(run: &Path) -> (Vec<(String, Vec<u32>)>, Vec<(String, Vec<u8>)>) {
+fn final_state(run: &Path) -> State {
     let c = read_checkpoint(&run.join(LATEST)).unwrap();
     assert!(c.verified, "a new checkpoint carries checksums");
     let tensors = c
