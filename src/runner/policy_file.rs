@@ -127,10 +127,15 @@ fn meta_parse<T: std::str::FromStr>(
 /// Loads a checkpoint, refusing one whose format, observation layout or
 /// tensor shapes do not match this build.
 pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
-    policy_from_parts(read_checkpoint(path)?, path)
+    let ckpt = read_checkpoint(path)?;
+    if !ckpt.verified {
+        note_unverified(path);
+    }
+    policy_from_parts(ckpt, path)
 }
 
-/// [`load_policy`] of a checkpoint file's bytes (e.g. broadcast from MPI rank 0).
+/// [`load_policy`] of a checkpoint file's bytes (e.g. broadcast from MPI rank
+/// 0, which has already said whether the file carries checksums).
 pub fn load_policy_bytes(bytes: &[u8], path: &Path) -> Result<LoadedPolicy> {
     policy_from_parts(decode_checkpoint(bytes, path)?, path)
 }
@@ -149,9 +154,6 @@ fn note_unverified(path: &Path) {
 }
 
 fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
-    if !ckpt.verified {
-        note_unverified(path);
-    }
     let Checkpoint {
         tensors,
         blobs,

@@ -370,6 +370,15 @@ pub fn train_in(
         },
         None => None,
     };
+    if let Some(loaded) = resumed.as_ref().filter(|_| root && exact.is_some()) {
+        let (then, now) = (loaded.config.runner.threads, cfg.runner.threads);
+        if then != now {
+            eprintln!(
+                "note: {} was trained with runner.threads = {then}, this resume uses {now}: the update sums its shards in another order, so the run is not bit-identical to an uninterrupted one",
+                path.display()
+            );
+        }
+    }
     let (mut cfg, mut learner, mut progress) = if let Some(loaded) = resumed {
         let stored = keep_runner_settings(loaded.config, &cfg, loaded.progress.iteration)
             .with_context(|| format!("resuming from {}", path.display()))?;
