@@ -221,7 +221,7 @@ fn mpirun_train(args: &[&str]) -> Option<std::process::Output> {
 
 #[cfg(feature = "mpi")]
 #[test]
-fn two_ranks_resumed_at_a_checkpoint_are_the_uninterrupted_job() {
+fn two_ranks_resumed_at_two_checkpoints_are_the_uninterrupted_job() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = config("rall", 3);
     cfg.runner.threads = 1;
@@ -234,10 +234,12 @@ fn two_ranks_resumed_at_a_checkpoint_are_the_uninterrupted_job() {
     };
     let log = |o: &std::process::Output| String::from_utf8_lossy(&o.stderr).to_string();
     assert!(o.status.success(), "{}", log(&o));
-    let resumed = dir.path().join("resumed");
-    rewind_copy(&whole, &resumed, 1);
-    let o = mpirun_train(&["--resume", resumed.to_str().unwrap()]).unwrap();
-    assert!(o.status.success(), "{}", log(&o));
-    assert!(!log(&o).contains("not bit-identically"), "{}", log(&o));
-    assert_same_run(&whole, &resumed, "two ranks resumed at 1");
+    for at in [1, 2] {
+        let resumed = dir.path().join(format!("resumed-{at}"));
+        rewind_copy(&whole, &resumed, at);
+        let o = mpirun_train(&["--resume", resumed.to_str().unwrap()]).unwrap();
+        assert!(o.status.success(), "{}", log(&o));
+        assert!(!log(&o).contains("not bit-identically"), "{}", log(&o));
+        assert_same_run(&whole, &resumed, &format!("two ranks resumed at {at}"));
+    }
 }

@@ -146,3 +146,52 @@ impl<'a> StateReader<'a> {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Vec<u8> {
+        let mut w = StateWriter::new("t");
+        w.u64(7);
+        w.f64s(&[1.5, -0.0, f64::MIN_POSITIVE]);
+        w.f32s(&[3.25]);
+        w.rng(&ChaCha8Rng::seed_from_u64(4));
+        w.into_bytes()
+    }
+
+    fn read(bytes: &[u8]) -> Result<(u64, Vec<f64>, [f32; 1], ChaCha8Rng)> {
+        let mut r = StateReader::new(bytes, "t")?;
+        let n = r.u64()?;
+        let v = r.f64s()?;
+        let mut f = [0.0f32];
+        r.f32s_into(&mut f, "f")?;
+        let rng = r.rng()?;
+        r.finish()?;
+        Ok((n, v, f, rng))
+    }
+
+    #[test]
+    fn values_come_back_bit_for_bit_and_damage_is_an_error_not_a_panic() {
+        let bytes = sample();
+        let (n, v, f, rng) = read(&bytes).unwrap();
+        assert_eq!((n, f), (7, [3.25]));
+        assert_eq!(
+            v.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            [1.5f64, -0.0, f64::MIN_POSITIVE].map(f64::to_bits)
+        );
+        assert_eq!(rng, ChaCha8Rng::seed_from_u64(4));
+        for cut in 0..bytes.len() {
+            assert!(read(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(read(&longer).is_err());
+        for i in 0..bytes.len() {
+            let mut b = bytes.clone();
+            b[i] ^= 0x80;
+            let _ = read(&b); // any result but a panic
+        }
+        assert!(StateReader::new(&bytes, "other").is_err());
+    }
+}
