@@ -65,6 +65,86 @@ impl RunnerConfig {
     }
 }
 
+/// The most environments one process may run.
+pub const MAX_ENVS: usize = 1 << 20;
+/// The most worker threads a config may ask for.
+pub const MAX_THREADS: usize = 1024;
+/// Resident memory of one environment in training (MuJoCo data, robot,
+/// buffers), measured with `/usr/bin/time -v` (README: about 0.4 MB per env).
+pub const ENV_MEMORY_BYTES: u64 = 400_000;
+
+impl RunnerConfig {
+    /// Refuses values outside their ranges, naming the dotted key.
+    pub fn validate(&self) -> Result<()> {
+        let count = crate::learn::ppo::check_count;
+        count("runner.num_envs", self.num_envs, 1, MAX_ENVS)?;
+        count("runner.steps_per_env", self.steps_per_env, 1, 100_000)?;
+        count("runner.iterations", self.iterations, 0, 100_000_000)?;
+        count("runner.save_interval", self.save_interval, 1, 100_000_000)?;
+        count("runner.log_interval", self.log_interval, 1, 100_000_000)?;
+        count("runner.threads", self.threads, 0, MAX_THREADS)?;
+        anyhow::ensure!(
+            !self.runs_dir.trim().is_empty(),
+            "runner.runs_dir must name a folder"
+        );
+        if let Some(reset) = &self.action_std_reset {
+            crate::learn::ppo::check_f32(
+                "runner.action_std_reset.action_std",
+                reset.action_std,
+                1e-9,
+                1e3,
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Estimated memory of this process's envs and rollout (bytes), with
+    /// observation rows of `obs_width` values; `None` when it overflows.
+    pub fn memory_estimate_bytes(&self, obs_width: usize) -> Option<u64> {
+        // per step: observations (kept, normalised copy, final ones), actions,
+        // means, log-probs, rewards, flags
+        let row_bytes = (3 * obs_width as u64 + 3 * 12 + 8).checked_mul(4)?;
+        let per_env = (self.steps_per_env as u64)
+            .checked_mul(row_bytes)?
+            .checked_add(ENV_MEMORY_BYTES)?;
+        per_env.checked_mul(self.num_envs as u64)
+    }
+
+    /// Refuses (before anything is allocated) envs that cannot fit in this
+    /// machine's available memory, with the estimate.
+    pub fn check_memory(&self, obs_width: usize) -> Result<()> {
+        let gb = |b: u64| b as f64 / 1e9;
+        let Some(need) = self.memory_estimate_bytes(obs_width) else {
+            anyhow::bail!(
+                "runner.num_envs = {} x runner.steps_per_env = {} overflows a memory estimate",
+                self.num_envs,
+                self.steps_per_env
+            );
+        };
+        let Some(avail) = available_memory_bytes() else {
+            return Ok(());
+        };
+        anyhow::ensure!(
+            need <= avail,
+            "runner.num_envs = {} needs about {:.1} GB ({:.2} MB per env with its rollout of {} steps), but this machine has {:.1} GB available: use fewer envs (--envs)",
+            self.num_envs,
+            gb(need),
+            need as f64 / self.num_envs as f64 / 1e6,
+            self.steps_per_env,
+            gb(avail)
+        );
+        Ok(())
+    }
+}
+
+/// `MemAvailable` of /proc/meminfo (Linux), bytes.
+fn available_memory_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kb.checked_mul(1024)
+}
+
 impl Default for RunnerConfig {
     fn default() -> Self {
         RunnerConfig {
@@ -100,10 +180,20 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
-    /// Reads and validates a TOML file; errors name the file and the key.
+    /// Reads and validates a TOML file; errors name the file and the key. A
+    /// file without any section (empty, or comments only) is refused: it would
+    /// silently train on the defaults.
     pub fn from_toml_file(path: &Path) -> Result<TrainConfig> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("reading config {}", path.display()))?;
+        let table: toml::Table = toml::from_str(&text)
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .with_context(|| format!("config {}", path.display()))?;
+        anyhow::ensure!(
+            !table.is_empty(),
+            "config {} has no sections ([env], [learner], [runner]): an empty config would train on the defaults; start from configs/rall.toml",
+            path.display()
+        );
         TrainConfig::from_toml_str(&text).with_context(|| format!("config {}", path.display()))
     }
 
@@ -150,30 +240,15 @@ impl TrainConfig {
             );
         }
         let r = &self.runner;
-        anyhow::ensure!(
-            r.num_envs > 0,
-            "invalid [runner] value: runner.num_envs must be at least 1"
-        );
-        anyhow::ensure!(
-            r.steps_per_env > 0,
-            "invalid [runner] value: runner.steps_per_env must be at least 1"
-        );
-        anyhow::ensure!(
-            r.save_interval > 0,
-            "invalid [runner] value: runner.save_interval must be at least 1"
-        );
-        anyhow::ensure!(
-            r.log_interval > 0,
-            "invalid [runner] value: runner.log_interval must be at least 1"
-        );
-        if let Some(reset) = &r.action_std_reset {
-            anyhow::ensure!(
-                reset.action_std.is_finite() && reset.action_std > 0.0,
-                "invalid [runner] value: runner.action_std_reset.action_std must be a positive number, got {}",
-                reset.action_std
+        r.validate().context("invalid [runner] value")?;
+        // the rollout's floats must be countable (checked, not wrapped)
+        let batch = r.num_envs.checked_mul(r.steps_per_env);
+        let floats = batch.and_then(|b| b.checked_mul(self.env.obs_width()));
+        let (Some(batch), Some(_)) = (batch, floats) else {
+            anyhow::bail!(
+                "invalid [runner] value: runner.num_envs x runner.steps_per_env x the observation width overflows"
             );
-        }
-        let batch = r.num_envs * r.steps_per_env;
+        };
         anyhow::ensure!(
             batch >= self.learner.ppo.num_mini_batches,
             "invalid [runner] value: num_envs x steps_per_env = {batch} is smaller than learner.ppo.num_mini_batches"

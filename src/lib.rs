@@ -5,6 +5,7 @@
 //! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
+//! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
 //!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
 //! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
@@ -30,6 +31,7 @@ pub mod robot;
 #[allow(unsafe_code)]
 pub mod sim;
 
+pub mod fsio;
 pub mod hash;
 pub mod learn;
 

@@ -57,10 +57,12 @@ unsafe impl GlobalAlloc for HugePageAlloc {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         match huge_layout(layout) {
             Some(big) => {
+                // SAFETY: `big` has a non-zero size (at least the caller's).
                 let p = unsafe { System.alloc(big) };
                 advise_huge(p, big);
                 p
             }
+            // SAFETY: the caller's layout, forwarded unchanged (non-zero size).
             None => unsafe { System.alloc(layout) },
         }
     }
@@ -68,15 +70,19 @@ unsafe impl GlobalAlloc for HugePageAlloc {
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         match huge_layout(layout) {
             Some(big) => {
+                // SAFETY: `big` has a non-zero size (at least the caller's).
                 let p = unsafe { System.alloc_zeroed(big) };
                 advise_huge(p, big);
                 p
             }
+            // SAFETY: the caller's layout, forwarded unchanged (non-zero size).
             None => unsafe { System.alloc_zeroed(layout) },
         }
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: `ptr` came from `alloc` with this same derived layout (the
+        // caller passes the layout it allocated with, and the derivation is pure).
         unsafe { System.dealloc(ptr, huge_layout(layout).unwrap_or(layout)) }
     }
 
@@ -85,8 +91,11 @@ unsafe impl GlobalAlloc for HugePageAlloc {
         // does not overflow isize.
         let new_layout = unsafe { Layout::from_size_align_unchecked(new_size, layout.align()) };
         if huge_layout(layout).is_none() && huge_layout(new_layout).is_none() {
+            // SAFETY: neither layout is enlarged, so `ptr` was allocated by System
+            // with `layout` itself; the caller's contract covers new_size.
             return unsafe { System.realloc(ptr, layout, new_size) };
         }
+        // SAFETY: new_layout has a non-zero size (the caller's contract).
         let new = unsafe { self.alloc(new_layout) };
         if !new.is_null() {
             // SAFETY: both blocks are live, distinct, and at least this long.

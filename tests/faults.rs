@@ -1,8 +1,11 @@
 //! Faults a user's training run meets, tried on the real binary: `kill -9` at
 //! random moments (checkpoint writes included) 20 times in a row, SIGTERM from
-//! a scheduler, and a run that goes numerically wrong. Every time the run must
-//! resume, lose at most one save interval, and leave no unreadable checkpoint
-//! or inconsistent metrics file on disk.
+//! a scheduler, a run that goes numerically wrong, a corrupted checkpoint, an
+//! empty config, NaN/inf settings, more envs than memory, a shared run folder
+//! with other programs' temp files, run names that leave `runs/`, and a run
+//! stopped and resumed that must equal the uninterrupted one. Every time the run
+//! must resume, lose at most one save interval, and leave no unreadable
+//! checkpoint or inconsistent metrics file on disk.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -215,27 +218,425 @@ fn sigterm_writes_a_checkpoint_and_exits_cleanly() {
 fn a_run_that_goes_numerically_wrong_stops_with_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = tiny_config_file(dir.path(), 5);
-    // rewards scaled to overflow: the losses become non-finite at once
-    let text = std::fs::read_to_string(&cfg).unwrap();
-    let mut c = TrainConfig::from_toml_str(&text).unwrap();
-    c.env.reward.lin_vel_tracking = 3e38;
-    c.env.reward.feet_air_time = 3e38;
-    std::fs::write(&cfg, c.to_toml()).unwrap();
-    let run = dir.path().join("run");
+    // before any checkpoint: the error says none was written (no file named)
+    let run = dir.path().join("early");
     let out = Command::new(env!("CARGO_BIN_EXE_rall"))
         .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
         .arg(&run)
+        .env("RALL_FAULT_NAN", "1")
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "a diverged run must fail: {stderr}");
     assert!(stderr.contains("diverged"), "{stderr}");
-    // nothing non-finite was saved
+    assert!(stderr.contains("no checkpoint was written"), "{stderr}");
+    assert!(!run.join(LATEST).exists());
+    // later: it names the last good checkpoint, and nothing non-finite is saved
+    let run = dir.path().join("run");
+    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+        .arg(&run)
+        .env("RALL_FAULT_NAN", "3")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a diverged run must fail: {stderr}");
+    assert!(stderr.contains("model_000002.safetensors"), "{stderr}");
     all_checkpoints_load(&run);
-    if run.join(LATEST).exists() {
-        let p = load_policy(&run.join(LATEST)).unwrap();
-        for t in p.learner.state() {
-            assert!(t.data.iter().all(|v| v.is_finite()), "{} holds NaN", t.name);
+    let p = load_policy(&run.join(LATEST)).unwrap();
+    assert_eq!(p.progress.iteration, 2);
+    for t in p.learner.state() {
+        assert!(t.data.iter().all(|v| v.is_finite()), "{} holds NaN", t.name);
+    }
+}
+
+fn rall_output(args: &[&str]) -> (bool, Option<i32>, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(args)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), out.status.code(), text)
+}
+
+/// Offset in the file of tensor `name`'s first data byte.
+fn tensor_offset(bytes: &[u8], name: &str) -> usize {
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    8 + n + header[name]["data_offsets"][0].as_u64().unwrap() as usize
+}
+
+#[test]
+fn a_corrupt_checkpoint_is_refused_by_name_and_resume_falls_back_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 2);
+    let run = dir.path().join("run");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        run.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    // the exponent byte of the first weight of actor.l0.weight
+    let latest = run.join(LATEST);
+    let mut bytes = std::fs::read(&latest).unwrap();
+    let at = tensor_offset(&bytes, "actor.l0.weight") + 3;
+    bytes[at] ^= 0x40;
+    std::fs::write(&latest, &bytes).unwrap();
+    let e = format!(
+        "{:#}",
+        load_policy(&latest)
+            .err()
+            .expect("a corrupt file is refused")
+    );
+    assert!(
+        e.contains("actor.l0.weight") && e.contains("corrupt"),
+        "{e}"
+    );
+    // a truncated numbered checkpoint too: resume passes both, once each
+    let second = run.join("checkpoints/model_000002.safetensors");
+    let len = std::fs::metadata(&second).unwrap().len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&second)
+        .unwrap()
+        .set_len(len / 2)
+        .unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        run.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    assert_eq!(log.matches("is unusable").count(), 1, "{log}");
+    assert!(log.contains("model_000001.safetensors"), "{log}");
+    assert!(
+        run.join("checkpoints/model_000002.safetensors.corrupt")
+            .exists(),
+        "the truncated checkpoint is moved aside: {log}"
+    );
+    assert_eq!(load_policy(&latest).unwrap().progress.iteration, 3);
+}
+
+#[test]
+fn an_empty_config_is_refused_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty.toml");
+    std::fs::write(&empty, "# nothing here\n").unwrap();
+    let run = dir.path().join("run");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        empty.to_str().unwrap(),
+        "--run-dir",
+        run.to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert!(
+        log.contains("empty.toml") && log.contains("no sections"),
+        "{log}"
+    );
+    assert!(!run.join("metrics.csv").exists());
+}
+
+/// `toml` with `line` (`key = value`) set in `table`: the key's line replaced,
+/// or added under the table header.
+fn set_key(toml: &str, table: &str, line: &str) -> String {
+    let key = format!("{} =", line.split(" =").next().unwrap());
+    let mut out = Vec::new();
+    let (mut inside, mut done) = (false, false);
+    for l in toml.lines() {
+        if l.starts_with('[') {
+            if inside && !done {
+                out.push(line.to_string());
+                done = true;
+            }
+            inside = l == table;
+        }
+        if inside && l.starts_with(&key) {
+            out.push(line.to_string());
+            done = true;
+        } else {
+            out.push(l.to_string());
         }
     }
+    if inside && !done {
+        out.push(line.to_string());
+        done = true;
+    }
+    assert!(done, "{table} is in the tiny config");
+    out.join("\n") + "\n"
+}
+
+#[test]
+fn nan_and_infinite_settings_are_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = TrainConfig::from_toml_str(
+        &std::fs::read_to_string(tiny_config_file(dir.path(), 2)).unwrap(),
+    )
+    .unwrap()
+    .to_toml();
+    let mut wide = TrainConfig::from_toml_str(&base).unwrap();
+    wide.learner.actor_hidden = vec![100_000];
+    let e = format!("{:#}", wide.validate().unwrap_err());
+    assert!(e.contains("learner.actor_hidden[0]"), "{e}");
+    let cases = [
+        ("[env.observation]", "clip = inf", "observation.clip"),
+        (
+            "[env.observation.scales]",
+            "lin_vel = 1e30",
+            "observation.scales.lin_vel",
+        ),
+        (
+            "[learner.ppo]",
+            "learning_rate = nan",
+            "learner.ppo.learning_rate",
+        ),
+        ("[learner.ppo]", "min_lr = -1.0", "learner.ppo.min_lr"),
+        ("[learner.ppo]", "max_lr = inf", "learner.ppo.max_lr"),
+        (
+            "[env.reward]",
+            "lin_vel_tracking = 3e38",
+            "reward.lin_vel_tracking",
+        ),
+        ("[learner]", "num_cos = 100000", "learner.num_cos"),
+        ("[runner]", "threads = 100000", "runner.threads"),
+        ("[env.terrain]", "num_levels = 100000", "terrain.num_levels"),
+    ];
+    for (i, (table, line, key)) in cases.iter().enumerate() {
+        let text = set_key(&base, table, line);
+        let path = dir.path().join(format!("bad{i}.toml"));
+        std::fs::write(&path, &text).unwrap();
+        let run = dir.path().join(format!("run{i}"));
+        let (ok, code, log) = rall_output(&[
+            "train",
+            "--config",
+            path.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ]);
+        assert!(!ok && code == Some(1), "{line}: {code:?} {log}");
+        assert!(log.contains(key), "{line}: the error names {key}: {log}");
+    }
+}
+
+#[test]
+fn too_many_envs_are_refused_before_allocation() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 1);
+    for (envs, says) in [("100000000", "runner.num_envs"), ("1000000", "GB")] {
+        let run = dir.path().join(format!("run{envs}"));
+        let (ok, code, log) = rall_output(&[
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+            "--envs",
+            envs,
+        ]);
+        assert!(
+            !ok && code == Some(1),
+            "--envs {envs} ends with an error, not a signal: {code:?} {log}"
+        );
+        assert!(
+            log.contains(says) && log.contains("num_envs"),
+            "--envs {envs}: {log}"
+        );
+    }
+}
+
+#[test]
+fn a_shared_run_dir_keeps_other_programs_temp_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 1);
+    let shared = dir.path().join("shared");
+    std::fs::create_dir_all(shared.join("checkpoints")).unwrap();
+    for name in [
+        "notes.tmp",
+        "upload.safetensors.tmp",
+        "checkpoints/other.tmp",
+    ] {
+        std::fs::write(shared.join(name), "not rall's").unwrap();
+    }
+    std::fs::write(shared.join("latest.safetensors.tmp"), "a killed write").unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        shared.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    for name in [
+        "notes.tmp",
+        "upload.safetensors.tmp",
+        "checkpoints/other.tmp",
+    ] {
+        assert!(shared.join(name).exists(), "{name} was removed");
+    }
+    assert!(!shared.join("latest.safetensors.tmp").exists());
+    assert!(!shared.join("config.toml.tmp").exists());
+}
+
+#[test]
+fn run_names_that_leave_the_runs_folder_are_refused() {
+    use rall::experiment::spec::check_run_name;
+    for bad in ["../escape", "a/b", "..", ".", "", "a\\b", "x..y", "-rf"] {
+        assert!(check_run_name(bad).is_err(), "{bad:?} accepted");
+    }
+    for good in ["rall", "rma-teacher", "flat_v2.1"] {
+        check_run_name(good).unwrap();
+    }
+}
+
+#[test]
+fn stopping_and_resuming_with_the_cli_is_the_uninterrupted_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 3);
+    let (whole, parts) = (dir.path().join("whole"), dir.path().join("parts"));
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        whole.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        parts.to_str().unwrap(),
+        "--iterations",
+        "1",
+    ]);
+    assert!(ok, "{log}");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        parts.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    assert!(!log.contains("not bit-identically"), "{log}");
+    let state = |r: &Path| rall::learn::read_checkpoint(&r.join(LATEST)).unwrap();
+    let (a, b) = (state(&whole), state(&parts));
+    for (x, y) in a.tensors.iter().zip(&b.tensors) {
+        assert!(x == y, "tensor {} differs", x.name);
+    }
+    assert_eq!(a.blobs, b.blobs);
+    let rows = |r: &Path| -> Vec<String> {
+        let text = std::fs::read_to_string(r.join("metrics.csv")).unwrap();
+        let head: Vec<String> = text
+            .lines()
+            .next()
+            .unwrap()
+            .split(',')
+            .map(String::from)
+            .collect();
+        text.lines()
+            .map(|l| {
+                l.split(',')
+                    .zip(&head)
+                    .filter(|(_, h)| !h.ends_with("_s"))
+                    .map(|(v, _)| v)
+                    .collect::<Vec<_>>()
+                    .join(",")
+            })
+            .collect()
+    };
+    assert_eq!(rows(&whole), rows(&parts));
+}
+
+#[test]
+fn the_shipped_policies_without_checksums_still_load() {
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
+        for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                walk(&p, out);
+            } else if p.extension().is_some_and(|x| x == "safetensors") {
+                out.push(p);
+            }
+        }
+    }
+    let mut files = Vec::new();
+    walk(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("policies"),
+        &mut files,
+    );
+    assert!(!files.is_empty(), "policies/ holds checkpoints");
+    for f in &files {
+        let c = rall::learn::read_checkpoint(f).unwrap_or_else(|e| panic!("{e:#}"));
+        assert!(!c.verified, "{} predates checksums", f.display());
+        let p = load_policy(f).unwrap_or_else(|e| panic!("{}: {e:#}", f.display()));
+        assert!(
+            !p.exact,
+            "{}: an old checkpoint resumes, not exactly",
+            f.display()
+        );
+    }
+}
+
+/// A checkpoint as rall wrote it before checksums and exact state: f32 tensors
+/// and metadata only.
+fn write_old_format(path: &Path, c: &rall::learn::Checkpoint) {
+    use safetensors::tensor::{Dtype, TensorView};
+    let bytes: Vec<Vec<u8>> = c
+        .tensors
+        .iter()
+        .map(|t| t.data.iter().flat_map(|v| v.to_le_bytes()).collect())
+        .collect();
+    let views: Vec<(String, TensorView)> = c
+        .tensors
+        .iter()
+        .zip(&bytes)
+        .map(|(t, b)| {
+            let v = TensorView::new(Dtype::F32, t.shape.clone(), b).unwrap();
+            (t.name.clone(), v)
+        })
+        .collect();
+    let buf = safetensors::serialize(views, Some(c.metadata.clone())).unwrap();
+    std::fs::write(path, buf).unwrap();
+}
+
+#[test]
+fn a_checkpoint_from_before_checksums_resumes_with_one_note_each() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 2);
+    let run = dir.path().join("run");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        run.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    let latest = run.join(LATEST);
+    let c = rall::learn::read_checkpoint(&latest).unwrap();
+    write_old_format(&latest, &c);
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        run.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    assert_eq!(log.matches("has no checksums").count(), 1, "{log}");
+    assert_eq!(log.matches("not bit-identically").count(), 1, "{log}");
+    let p = load_policy(&latest).unwrap();
+    assert!(p.exact && p.progress.iteration == 3);
 }

@@ -196,3 +196,170 @@ fn mutated_checkpoints_never_panic_the_loader() {
         })
         .unwrap();
 }
+
+/// A checkpoint's contents as compared by the flip tests: tensors (name,
+/// shape, bits), state blobs, sorted metadata, whether checksums were verified.
+type Decoded = (
+    Vec<(String, Vec<usize>, Vec<u32>)>,
+    Vec<(String, Vec<u8>)>,
+    Vec<(String, String)>,
+    bool,
+);
+
+/// The decoded contents of a checkpoint file, or `None` when the loader refuses it.
+fn decoded(bytes: &[u8]) -> Option<Decoded> {
+    let c = rall::learn::decode_checkpoint(bytes, Path::new("flipped.safetensors")).ok()?;
+    let tensors = c
+        .tensors
+        .into_iter()
+        .map(|t| {
+            (
+                t.name,
+                t.shape,
+                t.data.iter().map(|v| v.to_bits()).collect(),
+            )
+        })
+        .collect();
+    let mut meta: Vec<(String, String)> = c.metadata.into_iter().collect();
+    meta.sort();
+    Some((tensors, c.blobs, meta, c.verified))
+}
+
+/// Every single-bit flip anywhere in a small checkpoint (header, metadata, every
+/// tensor, the state blobs) is either refused or provably harmless: the file
+/// then decodes to exactly the original contents (e.g. a padding space of the
+/// JSON header turned into another whitespace). Never a silently different policy.
+#[test]
+fn every_bit_flip_of_a_checkpoint_is_refused_or_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let valid = valid_checkpoint(dir.path());
+    let original = decoded(&valid).expect("the valid checkpoint decodes");
+    assert!(original.3, "a new checkpoint carries checksums");
+    let (mut refused, mut harmless) = (0usize, 0usize);
+    let mut bytes = valid.clone();
+    for i in 0..valid.len() {
+        for bit in 0..8 {
+            bytes[i] ^= 1 << bit;
+            match decoded(&bytes) {
+                None => refused += 1,
+                Some(d) => {
+                    assert!(
+                        d == original,
+                        "flipping bit {bit} of byte {i} (of {}) loads a different checkpoint",
+                        valid.len()
+                    );
+                    harmless += 1;
+                }
+            }
+            bytes[i] = valid[i];
+        }
+    }
+    assert!(refused > 0 && refused + harmless == valid.len() * 8);
+}
+
+/// Random multi-byte damage: refused (naming the file) or identical contents.
+#[test]
+fn random_byte_damage_to_a_checkpoint_is_refused_or_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let valid = valid_checkpoint(dir.path());
+    let original = decoded(&valid).unwrap();
+    let strategy = prop::collection::vec((any::<usize>(), 1u8..=255), 1..6);
+    runner()
+        .run(&strategy, |flips| {
+            let mut bytes = valid.clone();
+            for (at, mask) in &flips {
+                let i = at % bytes.len();
+                bytes[i] ^= mask;
+            }
+            if let Some(d) = decoded(&bytes) {
+                prop_assert!(
+                    d == original,
+                    "damage {:?} loads a different checkpoint",
+                    flips
+                );
+            }
+            Ok(())
+        })
+        .unwrap();
+}
+
+/// Tokens that stress MuJoCo's MJCF parser and compiler.
+const MJCF_TOKENS: &[&str] = &[
+    "<",
+    ">",
+    "/>",
+    "</body>",
+    "<body>",
+    "\"",
+    "=",
+    "nan",
+    "inf",
+    "-1",
+    "0",
+    "1e300",
+    "-1e300",
+    "<geom/>",
+    "<joint/>",
+    "type=\"hfield\"",
+    "size=\"0 0 0\"",
+    "mass=\"-1\"",
+    "&amp;",
+    "&",
+    "<!--",
+    "-->",
+    "<![CDATA[",
+    "]]>",
+    "<include file=\"x.xml\"/>",
+    "\u{0}",
+    "\u{ffff}",
+    "name=\"trunk\"",
+    "<freejoint/>",
+    "<mujoco>",
+    "</mujoco>",
+    "quat=\"0 0 0 0\"",
+];
+
+/// Mutated robot MJCF through the loader: every input loads or gives a named
+/// error (the loader's label in the message); never a panic, a crash or an abort.
+#[test]
+fn mutated_mjcf_never_crashes_the_loader() {
+    let xml =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/mjcf/aliengo.xml")).unwrap();
+    let strategy = (
+        prop::collection::vec((any::<usize>(), 0usize..12, 0..MJCF_TOKENS.len()), 1..5),
+        prop::option::of(any::<usize>()),
+    );
+    let mut runner = TestRunner::new(Config {
+        cases: cases().min(400),
+        failure_persistence: None,
+        ..Config::default()
+    });
+    runner
+        .run(&strategy, |(edits, truncate)| {
+            let mut text = xml.clone();
+            for (at, len, token) in edits {
+                text = splice(&text, at % (text.len() + 1), len, MJCF_TOKENS[token]);
+            }
+            if let Some(t) = truncate.filter(|t| t % 4 == 0) {
+                let mut cut = t % (text.len() + 1);
+                while !text.is_char_boundary(cut) {
+                    cut -= 1;
+                }
+                text.truncate(cut);
+            }
+            let out = catch_unwind(AssertUnwindSafe(|| {
+                rall::sim::Model::from_xml_str(&text, "fuzzed-robot.xml")
+            }));
+            prop_assert!(out.is_ok(), "panic on mutated MJCF");
+            if let Ok(Err(e)) = out {
+                let message = e.to_string();
+                prop_assert!(
+                    message.contains("fuzzed-robot.xml"),
+                    "the error names the file: {}",
+                    message
+                );
+            }
+            Ok(())
+        })
+        .unwrap();
+}

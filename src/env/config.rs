@@ -87,6 +87,25 @@ pub struct RewardConfig {
     pub only_positive_task_reward: bool,
 }
 
+impl RewardConfig {
+    /// The term weights by key (for validation).
+    pub fn weights(&self) -> [(&'static str, f64); 11] {
+        [
+            ("lin_vel_tracking", self.lin_vel_tracking),
+            ("ang_vel_tracking", self.ang_vel_tracking),
+            ("lin_vel_z", self.lin_vel_z),
+            ("ang_vel_xy", self.ang_vel_xy),
+            ("joint_acc", self.joint_acc),
+            ("torques", self.torques),
+            ("action_magnitude", self.action_magnitude),
+            ("collision", self.collision),
+            ("action_rate", self.action_rate),
+            ("torque_rate", self.torque_rate),
+            ("feet_air_time", self.feet_air_time),
+        ]
+    }
+}
+
 impl Default for RewardConfig {
     fn default() -> Self {
         RewardConfig {
@@ -327,6 +346,20 @@ fn check(ok: bool, key: &str, what: impl std::fmt::Display) -> Result<(), String
     }
 }
 
+/// Largest observation scale a config may set.
+const MAX_SCALE: f64 = 1e4;
+/// Largest reward weight (in magnitude) a config may set.
+const MAX_WEIGHT: f64 = 1e6;
+
+/// `v` finite and in `[lo, hi]`.
+fn check_within(key: &str, v: f64, lo: f64, hi: f64) -> Result<(), String> {
+    check(
+        v.is_finite() && (lo..=hi).contains(&v),
+        key,
+        format!("must be a finite number in [{lo:e}, {hi:e}], got {v}"),
+    )
+}
+
 fn check_range(r: [f64; 2], key: &str) -> Result<(), String> {
     check(
         r[0].is_finite() && r[1].is_finite() && r[0] <= r[1],
@@ -385,7 +418,7 @@ impl EnvConfig {
                 format!("must be >= 0, got {v}"),
             )?;
         }
-        check(o.clip > 0.0, "observation.clip", "must be positive")?;
+        self.validate_magnitudes()?;
         check(
             o.groups.contains(&super::observation::ObsGroup::Policy),
             "observation.groups",
@@ -515,6 +548,54 @@ impl EnvConfig {
             }
         }
         self.terrain.validate()?;
+        Ok(())
+    }
+
+    /// Every scale, weight and duration finite and within a sane magnitude
+    /// (a scale of 1e30 or a clip of inf would train on garbage).
+    fn validate_magnitudes(&self) -> Result<(), String> {
+        let o = &self.observation;
+        let s = &o.scales;
+        let scales = [
+            ("observation.scales.lin_vel", s.lin_vel),
+            ("observation.scales.ang_vel", s.ang_vel),
+            ("observation.scales.gravity", s.gravity),
+            ("observation.scales.dof_pos", s.dof_pos),
+            ("observation.scales.dof_vel", s.dof_vel),
+            ("observation.command_scale[0]", o.command_scale[0]),
+            ("observation.command_scale[1]", o.command_scale[1]),
+            ("observation.command_scale[2]", o.command_scale[2]),
+            ("observation.noise_level", o.noise_level),
+        ];
+        for (key, v) in scales {
+            check_within(key, v, 0.0, MAX_SCALE)?;
+        }
+        check(
+            o.clip.is_finite() && o.clip > 0.0 && o.clip <= 1e6,
+            "observation.clip",
+            format!("must be a finite number in (0, 1e6], got {}", o.clip),
+        )?;
+        let r = &self.reward;
+        for (key, v) in r.weights() {
+            check_within(&format!("reward.{key}"), v, -MAX_WEIGHT, MAX_WEIGHT)?;
+        }
+        check_within("reward.tracking_sigma", r.tracking_sigma, 1e-9, 1e6)?;
+        check_within(
+            "reward.feet_air_time_target_s",
+            r.feet_air_time_target_s,
+            0.0,
+            1e3,
+        )?;
+        let c = &self.commands;
+        check_within("commands.zero_below_mps", c.zero_below_mps, 0.0, 1e3)?;
+        check_within(
+            "commands.resample_interval_s",
+            c.resample_interval_s,
+            1e-6,
+            1e6,
+        )?;
+        check_within("episode.length_s", self.episode.length_s, 1e-6, 1e6)?;
+        check_within("episode.max_tilt_rad", self.episode.max_tilt_rad, 1e-6, 1e3)?;
         Ok(())
     }
 

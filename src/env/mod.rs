@@ -16,6 +16,7 @@ pub mod reward;
 pub mod risk;
 mod scene;
 mod single;
+pub mod snapshot;
 pub mod state;
 pub mod terrain;
 mod vec_env;

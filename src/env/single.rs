@@ -12,6 +12,7 @@ use super::observation::{write_observation, ObsGroup, ACT_DIM, OBS_DIM};
 use super::privileged::PrivilegedState;
 use super::reward::{reward_terms, RewardInputs, NUM_REWARD_TERMS};
 use super::risk::{evaluate_risk, RiskOutcome, NUM_RISK_TERMS};
+use super::snapshot::{StateReader, StateWriter};
 use super::state::{roll_pitch_yaw, rotate_inverse, RobotState};
 use super::terrain::Terrain;
 use crate::robot::{Part, Robot, NUM_JOINTS};
@@ -348,14 +349,27 @@ impl Env {
             Some([lo, hi]) => std::array::from_fn(|_| self.rng.gen_range(lo..=hi)),
             None => [0.0; 3],
         };
-        self.draw = EpisodeDraw {
+        self.apply_draw(EpisodeDraw {
             friction,
             added_base_mass_kg: added,
             motor_strength,
             kp_factor,
             kd_factor,
             com_offset_m,
-        };
+        });
+    }
+
+    /// Writes `draw` into the robot's parameters and gains.
+    fn apply_draw(&mut self, draw: EpisodeDraw) {
+        let EpisodeDraw {
+            friction,
+            added_base_mass_kg: added,
+            motor_strength,
+            kp_factor,
+            kd_factor,
+            com_offset_m,
+        } = draw;
+        self.draw = draw;
         self.robot.motor_strength = motor_strength;
         self.robot.control.kp_nm_per_rad = self.cfg.control.kp_nm_per_rad * kp_factor;
         self.robot.control.kd_nm_s_per_rad = self.cfg.control.kd_nm_s_per_rad * kd_factor;
@@ -745,6 +759,123 @@ impl Env {
             at += w;
         }
         debug_assert_eq!(at, out.len());
+    }
+}
+
+/// Tag of [`Env::snapshot`]'s layout.
+const ENV_SNAPSHOT_TAG: &str = "rall-env-1";
+
+impl Env {
+    /// The env's whole episode state between two steps (RNG, draw, command,
+    /// actions, counters, history, running sums, MuJoCo state), for a resume
+    /// that continues every episode bit for bit ([`Env::restore`]).
+    pub fn snapshot(&self, w: &mut StateWriter) {
+        w.str(ENV_SNAPSHOT_TAG);
+        w.rng(&self.rng);
+        let d = &self.draw;
+        w.u64(d.friction.is_some() as u64);
+        w.f64(d.friction.unwrap_or(0.0));
+        w.f64(d.added_base_mass_kg);
+        w.f64s(&d.motor_strength);
+        w.f64s(&[d.kp_factor, d.kd_factor]);
+        w.f64s(&d.com_offset_m);
+        w.f64s(&self.command);
+        w.f32s(&self.action);
+        w.f32s(&self.previous_action);
+        w.f64s(&self.previous_torques_nm);
+        w.f64s(&self.feet_air_time_s);
+        for v in [self.step_in_episode, self.terrain_level, self.terrain_type] {
+            w.usize(v);
+        }
+        w.f64s(&self.spawn_xy_m);
+        w.f64s(&self.force_push.force_n);
+        w.usize(self.force_push.steps_left);
+        w.f64s(&self.push_force_now_n);
+        w.f64s(&self.kick_now_mps);
+        w.f32s(&self.policy_obs);
+        w.f32s(&self.history);
+        w.f64(self.commanded_distance_m);
+        self.snapshot_sums(w);
+        w.u64(self.instabilities);
+        w.f64s(&self.robot.data().physics_state());
+    }
+
+    fn snapshot_sums(&self, w: &mut StateWriter) {
+        let s = &self.sums;
+        w.f64s(&s.reward_terms);
+        w.f64s(&[
+            s.risk_penalty,
+            s.total_reward,
+            s.distance_m,
+            s.commanded_distance_m,
+        ]);
+        for v in s.risk_exceeded.iter().chain(&s.risk_fired) {
+            w.u64(*v as u64);
+        }
+        w.usize(s.terrain_level);
+        w.usize(s.steps);
+    }
+
+    /// Restores [`Env::snapshot`] (an env of the same config and model).
+    pub fn restore(&mut self, r: &mut StateReader) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            r.bytes()? == ENV_SNAPSHOT_TAG.as_bytes(),
+            "env {}: not an env snapshot of this build's layout",
+            self.index
+        );
+        self.rng = r.rng()?;
+        let friction = (r.u64()? != 0, r.f64()?);
+        let mut draw = EpisodeDraw {
+            friction: friction.0.then_some(friction.1),
+            added_base_mass_kg: r.f64()?,
+            ..EpisodeDraw::default()
+        };
+        r.f64s_into(&mut draw.motor_strength, "motor strength")?;
+        let mut gains = [0.0; 2];
+        r.f64s_into(&mut gains, "gain factors")?;
+        (draw.kp_factor, draw.kd_factor) = (gains[0], gains[1]);
+        r.f64s_into(&mut draw.com_offset_m, "com offset")?;
+        self.apply_draw(draw);
+        r.f64s_into(&mut self.command, "command")?;
+        r.f32s_into(&mut self.action, "action")?;
+        r.f32s_into(&mut self.previous_action, "previous action")?;
+        r.f64s_into(&mut self.previous_torques_nm, "previous torques")?;
+        r.f64s_into(&mut self.feet_air_time_s, "feet air time")?;
+        self.step_in_episode = r.usize()?;
+        self.terrain_level = r.usize()?;
+        self.terrain_type = r.usize()?;
+        r.f64s_into(&mut self.spawn_xy_m, "spawn point")?;
+        r.f64s_into(&mut self.force_push.force_n, "push force")?;
+        self.force_push.steps_left = r.usize()?;
+        r.f64s_into(&mut self.push_force_now_n, "push force now")?;
+        r.f64s_into(&mut self.kick_now_mps, "kick now")?;
+        r.f32s_into(&mut self.policy_obs, "policy observation")?;
+        r.f32s_into(&mut self.history, "history")?;
+        self.commanded_distance_m = r.f64()?;
+        self.restore_sums(r)?;
+        self.instabilities = r.u64()?;
+        let physics = r.f64s()?;
+        self.robot.set_physics_state(&physics)?;
+        Ok(())
+    }
+
+    fn restore_sums(&mut self, r: &mut StateReader) -> anyhow::Result<()> {
+        let s = &mut self.sums;
+        r.f64s_into(&mut s.reward_terms, "reward sums")?;
+        let mut f = [0.0; 4];
+        r.f64s_into(&mut f, "episode sums")?;
+        [
+            s.risk_penalty,
+            s.total_reward,
+            s.distance_m,
+            s.commanded_distance_m,
+        ] = f;
+        for v in s.risk_exceeded.iter_mut().chain(s.risk_fired.iter_mut()) {
+            *v = u32::try_from(r.u64()?)?;
+        }
+        s.terrain_level = r.usize()?;
+        s.steps = r.usize()?;
+        Ok(())
     }
 }
 

@@ -156,6 +156,9 @@ impl Default for TerrainConfig {
     }
 }
 
+/// The most difficulty levels (and terrain types) a terrain may have.
+pub const MAX_TERRAIN_LEVELS: usize = 1000;
+
 /// Whether `v` is a whole number of `step`s (to 1e-6 relative).
 fn is_multiple(v: f64, step: f64) -> bool {
     let k = (v / step).round();
@@ -245,6 +248,16 @@ impl TerrainConfig {
                  reduce terrain.num_levels, terrain.num_types or the tile size, \
                  or raise terrain.horizontal_scale_m"
             ));
+        }
+        for (key, n) in [
+            ("num_levels", self.num_levels),
+            ("num_types", self.num_types),
+        ] {
+            if n > MAX_TERRAIN_LEVELS {
+                return Err(format!(
+                    "terrain.{key} must be at most {MAX_TERRAIN_LEVELS}, got {n}"
+                ));
+            }
         }
         Ok(())
     }
@@ -759,6 +772,37 @@ impl Curriculum {
             ));
         }
         self.levels.copy_from_slice(levels);
+        Ok(())
+    }
+    /// Levels, types and every env's RNG, for an exact resume.
+    pub fn snapshot(&self, w: &mut super::snapshot::StateWriter) {
+        w.usize(self.levels.len());
+        for ((l, t), r) in self.levels.iter().zip(&self.types).zip(&self.rngs) {
+            w.usize(*l);
+            w.usize(*t);
+            w.rng(r);
+        }
+    }
+
+    /// Restores [`Curriculum::snapshot`] (same env count, levels in range).
+    pub fn restore(&mut self, r: &mut super::snapshot::StateReader) -> anyhow::Result<()> {
+        let n = r.usize()?;
+        anyhow::ensure!(
+            n == self.levels.len(),
+            "a curriculum of {n} envs for {} envs",
+            self.levels.len()
+        );
+        for e in 0..n {
+            let (level, terrain_type) = (r.usize()?, r.usize()?);
+            anyhow::ensure!(
+                level < self.num_levels,
+                "stored terrain level {level} but the terrain has {} levels",
+                self.num_levels
+            );
+            self.levels[e] = level;
+            self.types[e] = terrain_type;
+            self.rngs[e] = r.rng()?;
+        }
         Ok(())
     }
     pub fn level(&self, env: usize) -> usize {

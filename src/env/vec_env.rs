@@ -11,6 +11,7 @@ use super::config::EnvConfig;
 use super::observation::ACT_DIM;
 use super::risk::NUM_RISK_TERMS;
 use super::single::{Env, EpisodeSummary};
+use super::snapshot::{StateReader, StateWriter};
 use super::terrain::{Curriculum, Terrain};
 use crate::sim::{ArenaUse, Model, Result, SimError};
 
@@ -71,6 +72,9 @@ pub enum ModelSharing {
     /// A full model copy per env (the former layout; the reference in tests).
     PerEnv,
 }
+
+/// Tag of [`VecEnv::snapshot`]'s layout.
+const VEC_ENV_SNAPSHOT_TAG: &str = "rall-vec-env-1";
 
 pub struct VecEnv {
     envs: Vec<Env>,
@@ -319,6 +323,47 @@ impl VecEnv {
             .map(|e| e.arena_use())
             .reduce(ArenaUse::max)
             .unwrap_or_default()
+    }
+
+    /// Every env's episode state and the curriculum, as bytes, between two
+    /// steps: with the runner's current observations, what a resumed run needs
+    /// to continue every episode bit for bit ([`VecEnv::restore_snapshot`]).
+    pub fn snapshot(&self) -> Vec<u8> {
+        let mut w = StateWriter::new(VEC_ENV_SNAPSHOT_TAG);
+        w.usize(self.envs.len());
+        w.usize(self.obs_width);
+        w.u64(self.curriculum.is_some() as u64);
+        if let Some(c) = &self.curriculum {
+            c.snapshot(&mut w);
+        }
+        for env in &self.envs {
+            env.snapshot(&mut w);
+        }
+        w.into_bytes()
+    }
+
+    /// Restores [`VecEnv::snapshot`] of envs of the same config and count.
+    pub fn restore_snapshot(&mut self, bytes: &[u8]) -> anyhow::Result<()> {
+        let mut r = StateReader::new(bytes, VEC_ENV_SNAPSHOT_TAG)?;
+        let (n, width) = (r.usize()?, r.usize()?);
+        anyhow::ensure!(
+            n == self.envs.len() && width == self.obs_width,
+            "a snapshot of {n} envs x {width} observations for {} envs x {}",
+            self.envs.len(),
+            self.obs_width
+        );
+        let has_curriculum = r.u64()? != 0;
+        anyhow::ensure!(
+            has_curriculum == self.curriculum.is_some(),
+            "the snapshot and this run differ in having a terrain curriculum"
+        );
+        if let Some(c) = &mut self.curriculum {
+            c.restore(&mut r)?;
+        }
+        for env in &mut self.envs {
+            env.restore(&mut r)?;
+        }
+        r.finish()
     }
 
     /// Mean terrain level over envs (0 on flat ground).

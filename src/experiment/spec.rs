@@ -157,6 +157,25 @@ fn one_or_many_paths<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<PathB
     })
 }
 
+/// Refuses a run name that is not a plain directory name: empty, `.` or `..`,
+/// containing a path separator, a NUL, a control character, or longer than
+/// 200 bytes (a run directory is `<runs_dir>/<name>-s<seed>` and must stay there).
+pub fn check_run_name(name: &str) -> Result<()> {
+    if name.is_empty() || name == "." || name == ".." || name.contains("..") {
+        bail!("run name {name:?} must be a plain directory name (not empty, no \"..\")");
+    }
+    if let Some(c) = name
+        .chars()
+        .find(|c| matches!(c, '/' | '\\') || c.is_control())
+    {
+        bail!("run name {name:?} must be a plain directory name: it contains {c:?}");
+    }
+    if name.len() > 200 || name.starts_with('-') {
+        bail!("run name {name:?} must be at most 200 bytes and not start with '-'");
+    }
+    Ok(())
+}
+
 /// The name of a common randomisation in results (`runs.csv` column prefixes): its
 /// config's file stem (`configs/dr.toml` -> `dr`), other characters than [A-Za-z0-9_] as `_`.
 pub fn common_ground_name(config: &Path) -> String {
@@ -313,6 +332,7 @@ impl ExperimentSpec {
             }
         }
         for (i, r) in self.runs.iter().enumerate() {
+            check_run_name(&r.name).with_context(|| format!("run {:?}", r.label))?;
             if self.runs[..i].iter().any(|o| o.label == r.label) {
                 bail!("two runs are labelled {:?}", r.label);
             }

@@ -718,11 +718,10 @@ pub fn export_learner(
     if let Some(dir) = onnx_path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    std::fs::write(onnx_path, &bytes)
-        .with_context(|| format!("writing {}", onnx_path.display()))?;
+    crate::fsio::write_atomic(onnx_path, &bytes)?;
     let side = sidecar_path(onnx_path);
     let text = serde_json::to_string_pretty(&sidecar).context("serialising the sidecar")?;
-    std::fs::write(&side, text + "\n").with_context(|| format!("writing {}", side.display()))?;
+    crate::fsio::write_atomic(&side, (text + "\n").as_bytes())?;
     Ok(ExportReport {
         onnx_path: onnx_path.to_path_buf(),
         sidecar_path: side,

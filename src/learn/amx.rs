@@ -289,7 +289,7 @@ pub fn gemm_bf16(
     accumulate: bool,
 ) {
     assert!(available(), "AMX tiles are not available to this process");
-    assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
+    super::mat::assert_gemm_dims(m, n, k, a.len(), b.len(), c.len());
     if m == 0 || n == 0 {
         return;
     }

@@ -1,48 +1,147 @@
-//! Checkpoints as safetensors files (`f32`, little endian) with a caller-supplied
-//! `__metadata__` string map (the runner stores config JSON, observation layout
+//! Checkpoints as safetensors files (`f32` tensors, little endian, plus `u8`
+//! byte tensors for state kept bit for bit) with a caller-supplied
+//! `__metadata__` string map (the runner stores config TOML, observation layout
 //! and version there). Writes are atomic: `<path>.tmp`, fsync, rename.
+//!
+//! Integrity: every file carries a SHA-256 of each tensor (its name, dtype,
+//! shape and bytes) under the metadata key `sha256.<tensor>`, and one of the
+//! rest of the metadata under `sha256.__metadata__`. Loading verifies them all:
+//! a corrupt file is refused naming the tensor (or the metadata). Files written
+//! before checksums existed (no `sha256.` key at all) still load, unverified
+//! ([`Checkpoint::verified`] is false).
 
 use super::learner::NamedTensor;
 use anyhow::{bail, Context, Result};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-fn tmp_path(path: &Path) -> PathBuf {
+/// Prefix of the checksum keys in the metadata.
+pub const CHECKSUM_PREFIX: &str = "sha256.";
+/// The checksum key of the metadata itself.
+const METADATA_CHECKSUM: &str = "sha256.__metadata__";
+
+/// Temp-file suffix of checkpoint writes (the runner removes only these).
+pub const TMP_SUFFIX: &str = ".tmp";
+
+/// `<path>.tmp`: where a checkpoint is written before its rename.
+pub fn tmp_path(path: &Path) -> PathBuf {
     let mut s = path.as_os_str().to_owned();
-    s.push(".tmp");
+    s.push(TMP_SUFFIX);
     PathBuf::from(s)
 }
 
-/// Writes `tensors` and `metadata` to `path` atomically.
+/// A checkpoint read back: `f32` tensors and byte tensors in file order, the
+/// metadata without its checksum keys, and whether checksums were verified.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Checkpoint {
+    pub tensors: Vec<NamedTensor>,
+    /// `u8` tensors: state stored as bytes (RNG states, counters, env state).
+    pub blobs: Vec<(String, Vec<u8>)>,
+    pub metadata: HashMap<String, String>,
+    /// The file carried checksums and every one matched (false: an older file
+    /// without checksums, loaded unverified).
+    pub verified: bool,
+}
+
+fn tensor_digest(name: &str, dtype: Dtype, shape: &[usize], data: &[u8]) -> String {
+    let mut h = Sha256::new();
+    h.update(name.as_bytes());
+    h.update([0]);
+    h.update(format!("{dtype:?}{shape:?}").as_bytes());
+    h.update([0]);
+    h.update(data);
+    hex(&h.finalize())
+}
+
+/// Digest of every metadata entry but the checksums, in key order.
+fn metadata_digest(meta: &HashMap<String, String>) -> String {
+    let mut keys: Vec<&String> = meta
+        .keys()
+        .filter(|k| !k.starts_with(CHECKSUM_PREFIX))
+        .collect();
+    keys.sort();
+    let mut h = Sha256::new();
+    for k in keys {
+        for part in [k.as_bytes(), meta[k].as_bytes()] {
+            h.update((part.len() as u64).to_le_bytes());
+            h.update(part);
+        }
+    }
+    hex(&h.finalize())
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Writes `tensors` and `metadata` to `path` atomically, with checksums.
 pub fn save_checkpoint(
     path: &Path,
     tensors: &[NamedTensor],
     metadata: &HashMap<String, String>,
 ) -> Result<()> {
+    save_checkpoint_with(path, tensors, &[], metadata)
+}
+
+/// [`save_checkpoint`] with byte tensors (`u8`) beside the `f32` ones.
+pub fn save_checkpoint_with(
+    path: &Path,
+    tensors: &[NamedTensor],
+    blobs: &[(String, Vec<u8>)],
+    metadata: &HashMap<String, String>,
+) -> Result<()> {
+    let buf = serialize_checkpoint(tensors, blobs, metadata)
+        .with_context(|| format!("serialising checkpoint {}", path.display()))?;
+    write_file_atomic(path, &buf).with_context(|| format!("writing checkpoint {}", path.display()))
+}
+
+/// The file's bytes: tensors, blobs and metadata with fresh checksums (any
+/// `sha256.` keys in `metadata` are replaced).
+pub fn serialize_checkpoint(
+    tensors: &[NamedTensor],
+    blobs: &[(String, Vec<u8>)],
+    metadata: &HashMap<String, String>,
+) -> Result<Vec<u8>> {
     let bytes: Vec<Vec<u8>> = tensors
         .iter()
         .map(|t| t.data.iter().flat_map(|v| v.to_le_bytes()).collect())
         .collect();
-    let views = tensors
+    let mut meta: HashMap<String, String> = metadata
+        .iter()
+        .filter(|(k, _)| !k.starts_with(CHECKSUM_PREFIX))
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    let digest = metadata_digest(&meta);
+    meta.insert(METADATA_CHECKSUM.into(), digest);
+    let mut views = Vec::with_capacity(tensors.len() + blobs.len());
+    let items = tensors
         .iter()
         .zip(&bytes)
-        .map(|(t, b)| {
-            TensorView::new(Dtype::F32, t.shape.clone(), b)
-                .map(|v| (t.name.clone(), v))
-                .with_context(|| format!("tensor `{}` with shape {:?}", t.name, t.shape))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let buf = safetensors::serialize(views, Some(metadata.clone()))
-        .with_context(|| format!("serialising checkpoint {}", path.display()))?;
+        .map(|(t, b)| (&t.name, Dtype::F32, t.shape.clone(), b))
+        .chain(blobs.iter().map(|(n, b)| (n, Dtype::U8, vec![b.len()], b)));
+    for (name, dtype, shape, data) in items {
+        let key = format!("{CHECKSUM_PREFIX}{name}");
+        anyhow::ensure!(!meta.contains_key(&key), "two tensors are called `{name}`");
+        meta.insert(key, tensor_digest(name, dtype, &shape, data));
+        let view = TensorView::new(dtype, shape.clone(), data)
+            .with_context(|| format!("tensor `{name}` with shape {shape:?}"))?;
+        views.push((name.clone(), view));
+    }
+    safetensors::serialize(views, Some(meta)).map_err(|e| anyhow::anyhow!("{e:?}"))
+}
+
+/// `<path>.tmp`, fsync, rename, fsync of the directory (best effort); a failed
+/// write removes its temp file.
+fn write_file_atomic(path: &Path, buf: &[u8]) -> std::io::Result<()> {
     let tmp = tmp_path(path);
     let write = || -> std::io::Result<()> {
         let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(&buf)?;
+        f.write_all(buf)?;
         f.sync_all()?;
         std::fs::rename(&tmp, path)?;
-        // persist the rename (best effort: not every platform can fsync a directory)
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             if let Ok(d) = std::fs::File::open(dir) {
                 let _ = d.sync_all();
@@ -50,19 +149,16 @@ pub fn save_checkpoint(
         }
         Ok(())
     };
-    write().with_context(|| {
+    write().inspect_err(|_| {
         // a failed write must not leave its temp file filling the disk
         let _ = std::fs::remove_file(&tmp);
-        format!("writing checkpoint {}", path.display())
     })
 }
 
 /// Reads a checkpoint written by [`save_checkpoint`]: tensors (in file order) and
-/// metadata. Any malformed or truncated file is an error naming the path.
+/// metadata. Any malformed, truncated or corrupt file is an error naming the path.
 pub fn load_checkpoint(path: &Path) -> Result<(Vec<NamedTensor>, HashMap<String, String>)> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
-    parse_checkpoint(&bytes, path)
+    read_checkpoint(path).map(|c| (c.tensors, c.metadata))
 }
 
 /// [`load_checkpoint`] of a file's bytes already in memory (`path` names it in errors).
@@ -70,6 +166,18 @@ pub fn parse_checkpoint(
     bytes: &[u8],
     path: &Path,
 ) -> Result<(Vec<NamedTensor>, HashMap<String, String>)> {
+    decode_checkpoint(bytes, path).map(|c| (c.tensors, c.metadata))
+}
+
+/// The whole checkpoint at `path` (byte tensors and verification included).
+pub fn read_checkpoint(path: &Path) -> Result<Checkpoint> {
+    let bytes =
+        std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
+    decode_checkpoint(&bytes, path)
+}
+
+/// [`read_checkpoint`] of bytes in memory.
+pub fn decode_checkpoint(bytes: &[u8], path: &Path) -> Result<Checkpoint> {
     let st = SafeTensors::deserialize(bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
         .with_context(|| {
@@ -78,33 +186,104 @@ pub fn parse_checkpoint(
                 path.display()
             )
         })?;
-    let (_, meta) = SafeTensors::read_metadata(bytes)
+    let (_, header) = SafeTensors::read_metadata(bytes)
         .map_err(|e| anyhow::anyhow!("{e:?}"))
         .with_context(|| format!("checkpoint {}: bad header", path.display()))?;
-    let metadata = meta.metadata().clone().unwrap_or_default();
-    let mut tensors = Vec::new();
-    for name in meta.offset_keys() {
+    let mut metadata = header.metadata().clone().unwrap_or_default();
+    let sums: HashMap<String, String> = metadata
+        .iter()
+        .filter(|(k, _)| k.starts_with(CHECKSUM_PREFIX))
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    metadata.retain(|k, _| !k.starts_with(CHECKSUM_PREFIX));
+    let verified = !sums.is_empty();
+    let mut out = Checkpoint {
+        tensors: Vec::new(),
+        blobs: Vec::new(),
+        metadata,
+        verified,
+    };
+    let mut checked = 0;
+    for name in header.offset_keys() {
         let view = st
             .tensor(&name)
             .map_err(|e| anyhow::anyhow!("{e:?}"))
             .with_context(|| format!("checkpoint {}: tensor `{name}`", path.display()))?;
-        if view.dtype() != Dtype::F32 {
-            bail!(
-                "checkpoint {}: tensor `{name}` has dtype {:?}, expected F32",
-                path.display(),
-                view.dtype()
-            );
+        if verified {
+            verify_tensor(&sums, &name, &view, path)?;
+            checked += 1;
         }
-        let data = view
-            .data()
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
-        tensors.push(NamedTensor {
-            name,
-            shape: view.shape().to_vec(),
-            data,
-        });
+        push_tensor(&mut out, name, &view, path)?;
     }
-    Ok((tensors, metadata))
+    if verified {
+        verify_metadata(&sums, &out.metadata, checked, path)?;
+    }
+    Ok(out)
+}
+
+fn verify_tensor(
+    sums: &HashMap<String, String>,
+    name: &str,
+    view: &TensorView,
+    path: &Path,
+) -> Result<()> {
+    let Some(expected) = sums.get(&format!("{CHECKSUM_PREFIX}{name}")) else {
+        bail!(
+            "checkpoint {} is corrupt: tensor `{name}` has no checksum while the others have",
+            path.display()
+        );
+    };
+    if *expected != tensor_digest(name, view.dtype(), view.shape(), view.data()) {
+        bail!(
+            "checkpoint {} is corrupt: tensor `{name}` does not match its checksum",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+fn verify_metadata(
+    sums: &HashMap<String, String>,
+    metadata: &HashMap<String, String>,
+    tensors_checked: usize,
+    path: &Path,
+) -> Result<()> {
+    if sums.get(METADATA_CHECKSUM) != Some(&metadata_digest(metadata)) {
+        bail!(
+            "checkpoint {} is corrupt: its metadata (config, progress) does not match its checksum",
+            path.display()
+        );
+    }
+    // every checksum but the metadata's belongs to a tensor that was checked
+    if sums.len() != tensors_checked + 1 {
+        bail!(
+            "checkpoint {} is corrupt: it has {} tensor checksums for {tensors_checked} tensors",
+            path.display(),
+            sums.len() - 1
+        );
+    }
+    Ok(())
+}
+
+fn push_tensor(out: &mut Checkpoint, name: String, view: &TensorView, path: &Path) -> Result<()> {
+    match view.dtype() {
+        Dtype::F32 => {
+            let data = view
+                .data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            out.tensors.push(NamedTensor {
+                name,
+                shape: view.shape().to_vec(),
+                data,
+            });
+        }
+        Dtype::U8 => out.blobs.push((name, view.data().to_vec())),
+        other => bail!(
+            "checkpoint {}: tensor `{name}` has dtype {other:?}, expected F32 (or U8 state)",
+            path.display()
+        ),
+    }
+    Ok(())
 }

@@ -8,7 +8,9 @@ use super::collective::{Collective, SingleProcess};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
 use super::normalizer::EmpiricalNormalizer;
-use super::ppo::{self, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace};
+use super::ppo::{
+    self, check_count, check_f32, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace,
+};
 use super::risk::Distortion;
 use super::storage::{ActOutput, Rollout};
 use anyhow::{bail, ensure, Result};
@@ -217,10 +219,14 @@ impl LearnerConfig {
                 .map_err(|e| anyhow::anyhow!("learner.cvar_eta: {e}"))?;
         }
         self.distortion().validate()?;
+        self.ppo.validate()?;
         ensure!(
             !self.critic_hidden.is_empty(),
             "critic_hidden must not be empty"
         );
+        self.validate_sizes()?;
+        check_f32("learner.kappa", self.kappa, 1e-12, 1e6)?;
+        check_f32("learner.init_noise_std", self.init_noise_std, 1e-12, 1e3)?;
         ensure!(
             self.num_cos > 0
                 && self.num_taus > 0
@@ -271,6 +277,71 @@ impl LearnerConfig {
     }
 }
 
+/// The largest hidden layer, latent or tau basis a config may ask for.
+pub const MAX_LAYER_WIDTH: usize = 8192;
+/// The most hidden layers a network may have.
+pub const MAX_HIDDEN_LAYERS: usize = 16;
+
+fn check_hidden(key: &str, sizes: &[usize]) -> Result<()> {
+    ensure!(
+        sizes.len() <= MAX_HIDDEN_LAYERS,
+        "{key} has {} layers, at most {MAX_HIDDEN_LAYERS}",
+        sizes.len()
+    );
+    for (i, &w) in sizes.iter().enumerate() {
+        check_count(&format!("{key}[{i}]"), w, 1, MAX_LAYER_WIDTH)?;
+    }
+    Ok(())
+}
+
+impl LearnerConfig {
+    /// Layer widths and sample counts within their bounds (named by key).
+    fn validate_sizes(&self) -> Result<()> {
+        check_hidden("learner.actor_hidden", &self.actor_hidden)?;
+        check_hidden("learner.critic_hidden", &self.critic_hidden)?;
+        for (key, v) in [
+            ("learner.num_cos", self.num_cos),
+            ("learner.num_taus", self.num_taus),
+            ("learner.num_target_taus", self.num_target_taus),
+            ("learner.num_value_taus", self.num_value_taus),
+        ] {
+            check_count(key, v, 1, MAX_LAYER_WIDTH)?;
+        }
+        if let Some(e) = &self.encoder {
+            check_hidden("learner.encoder.hidden", &e.hidden)?;
+            check_count(
+                "learner.encoder.latent_dim",
+                e.latent_dim,
+                1,
+                MAX_LAYER_WIDTH,
+            )?;
+        }
+        if let Some(a) = &self.adaptation {
+            check_hidden("learner.adaptation.hidden", &a.hidden)?;
+            check_f32(
+                "learner.adaptation.learning_rate",
+                a.learning_rate,
+                1e-12,
+                1.0,
+            )?;
+            check_count("learner.adaptation.epochs", a.epochs, 1, 1000)?;
+            check_count(
+                "learner.adaptation.mini_batches",
+                a.mini_batches,
+                1,
+                1 << 20,
+            )?;
+            check_count(
+                "learner.adaptation.iterations",
+                a.iterations,
+                0,
+                100_000_000,
+            )?;
+        }
+        Ok(())
+    }
+}
+
 /// `rollout` with every observation (rows, time-outs' final ones, the last ones)
 /// normalised by `norm`, copied into `slot`'s buffers (kept between updates).
 fn normalized_rollout<'a>(
@@ -292,6 +363,10 @@ fn normalized_rollout<'a>(
     }
     copy
 }
+
+/// Layout tag of [`Learner::exact_state`] and its length in bytes.
+const EXACT_STATE_TAG: &[u8; 8] = b"rall-ls1";
+const EXACT_STATE_LEN: usize = 8 + 32 + 8 + 16 + 8 + 8;
 
 /// One named `f32` tensor of the learner state (row-major).
 #[derive(Clone, Debug, PartialEq)]
@@ -538,7 +613,7 @@ impl Learner {
 
     /// Everything needed to resume: weights (`actor.*`, `critic.*`), Adam moments
     /// (`adam.m.*`, `adam.v.*`), `adam.step` and `lr` (shape `[1]`).
-    /// (The update RNG is not included: a resumed run reseeds it.)
+    /// (The update RNG and the integer step counts are [`Self::exact_state`].)
     pub fn state(&self) -> Vec<NamedTensor> {
         let mut out = Vec::new();
         let groups: [(&str, &ParamSet, &AdamState); 2] = [
@@ -584,6 +659,44 @@ impl Learner {
             out.extend(n.state());
         }
         out
+    }
+
+    /// What a bit-identical resume needs beyond [`Self::state`], as bytes: the
+    /// update RNG (ChaCha8 seed, stream, word position) and the optimisers' step
+    /// counts as integers ([`Self::state`] keeps `adam.step` as f32 for older readers).
+    pub fn exact_state(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(EXACT_STATE_LEN);
+        out.extend_from_slice(EXACT_STATE_TAG);
+        out.extend_from_slice(&self.rng.get_seed());
+        out.extend_from_slice(&self.rng.get_stream().to_le_bytes());
+        out.extend_from_slice(&self.rng.get_word_pos().to_le_bytes());
+        out.extend_from_slice(&self.opt.step.to_le_bytes());
+        let adapt_step = self.adapt_opt.as_ref().map_or(0, |a| a.step);
+        out.extend_from_slice(&adapt_step.to_le_bytes());
+        out
+    }
+
+    /// Restores [`Self::exact_state`] (after [`Self::load_state`]).
+    pub fn load_exact_state(&mut self, bytes: &[u8]) -> Result<()> {
+        ensure!(
+            bytes.len() == EXACT_STATE_LEN && bytes.starts_with(EXACT_STATE_TAG),
+            "the learner's exact state has {} bytes, expected {EXACT_STATE_LEN} starting with {:?}",
+            bytes.len(),
+            String::from_utf8_lossy(EXACT_STATE_TAG)
+        );
+        let rest = &bytes[EXACT_STATE_TAG.len()..];
+        let seed: [u8; 32] = rest[..32].try_into().expect("length checked");
+        let u64_at = |at: usize| u64::from_le_bytes(rest[at..at + 8].try_into().expect("checked"));
+        let word_pos = u128::from_le_bytes(rest[40..56].try_into().expect("length checked"));
+        let mut rng = ChaCha8Rng::from_seed(seed);
+        rng.set_stream(u64_at(32));
+        rng.set_word_pos(word_pos);
+        self.rng = rng;
+        self.opt.step = u64_at(56);
+        if let Some(a) = &mut self.adapt_opt {
+            a.step = u64_at(64);
+        }
+        Ok(())
     }
 
     /// Restores [`Self::state`]. Refuses (changing nothing) a missing tensor or a

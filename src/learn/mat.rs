@@ -151,6 +151,21 @@ pub fn with_simd<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
 
+/// Panics unless `a`, `b` and `c` hold at least `m x k`, `k x n` and `m x n`
+/// values, the products computed with overflow checks (a wrapped product would
+/// let the unchecked kernels reach past the slices).
+pub(crate) fn assert_gemm_dims(m: usize, n: usize, k: usize, a: usize, b: usize, c: usize) {
+    let size = |x: usize, y: usize| {
+        x.checked_mul(y)
+            .filter(|&s| s <= isize::MAX as usize / 4)
+            .unwrap_or_else(|| panic!("gemm: a {x} x {y} matrix is larger than memory"))
+    };
+    assert!(
+        a >= size(m, k) && b >= size(k, n) && c >= size(m, n),
+        "gemm: slices of {a}, {b}, {c} values for {m} x {k} times {k} x {n}"
+    );
+}
+
 /// `c[m x n] = (accumulate ? c : 0) + op(a)[m x k] * op(b)[k x n]`, all row-major.
 /// `a_t`: `a` is stored as `k x m` (use its transpose); `b_t`: `b` is stored as `n x k`.
 #[allow(clippy::too_many_arguments)]
@@ -166,7 +181,7 @@ pub fn gemm(
     c: &mut [f32],
     accumulate: bool,
 ) {
-    assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
+    assert_gemm_dims(m, n, k, a.len(), b.len(), c.len());
     if m == 0 || n == 0 {
         return;
     }

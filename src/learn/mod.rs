@@ -56,7 +56,10 @@ pub mod risk;
 pub mod storage;
 
 pub use actor_critic::{ActorCritic, Critic};
-pub use checkpoint::{load_checkpoint, parse_checkpoint, save_checkpoint};
+pub use checkpoint::{
+    decode_checkpoint, load_checkpoint, parse_checkpoint, read_checkpoint, save_checkpoint,
+    save_checkpoint_with, Checkpoint,
+};
 pub use collective::{Collective, SingleProcess};
 pub use layout::{gather_columns, relayout_rows, ObsLayout};
 pub use learner::{

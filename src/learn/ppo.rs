@@ -107,6 +107,68 @@ impl Default for PpoConfig {
     }
 }
 
+/// `Err("<key>: must be ..., got <v>")` unless `v` is finite and in `[lo, hi]`.
+pub fn check_f32(key: &str, v: f32, lo: f32, hi: f32) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        v.is_finite() && (lo..=hi).contains(&v),
+        "{key} must be a finite number in [{lo:e}, {hi:e}], got {v}"
+    );
+    Ok(())
+}
+
+/// `Err` unless the count `v` is in `lo..=hi`.
+pub fn check_count(key: &str, v: usize, lo: usize, hi: usize) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        (lo..=hi).contains(&v),
+        "{key} must be in {lo}..={hi}, got {v}"
+    );
+    Ok(())
+}
+
+impl PpoConfig {
+    /// Refuses values outside their ranges, naming the dotted key.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        check_count(
+            "learner.ppo.num_learning_epochs",
+            self.num_learning_epochs,
+            1,
+            1000,
+        )?;
+        check_count(
+            "learner.ppo.num_mini_batches",
+            self.num_mini_batches,
+            1,
+            1 << 20,
+        )?;
+        check_f32("learner.ppo.clip_param", self.clip_param, 1e-6, 10.0)?;
+        check_f32("learner.ppo.gamma", self.gamma, 0.0, 1.0)?;
+        check_f32("learner.ppo.lam", self.lam, 0.0, 1.0)?;
+        check_f32(
+            "learner.ppo.value_loss_coef",
+            self.value_loss_coef,
+            0.0,
+            1e6,
+        )?;
+        check_f32("learner.ppo.entropy_coef", self.entropy_coef, -1e3, 1e3)?;
+        check_f32("learner.ppo.learning_rate", self.learning_rate, 0.0, 1.0)?;
+        check_f32("learner.ppo.desired_kl", self.desired_kl, 1e-12, 1e3)?;
+        check_f32("learner.ppo.min_lr", self.min_lr, 0.0, 1.0)?;
+        check_f32("learner.ppo.max_lr", self.max_lr, 1e-12, 1.0)?;
+        anyhow::ensure!(
+            self.min_lr <= self.max_lr,
+            "learner.ppo.min_lr ({}) must not exceed learner.ppo.max_lr ({})",
+            self.min_lr,
+            self.max_lr
+        );
+        check_f32("learner.ppo.max_grad_norm", self.max_grad_norm, 1e-12, 1e12)?;
+        let a = &self.adam;
+        check_f32("learner.ppo.adam.beta1", a.beta1, 0.0, 0.999_999)?;
+        check_f32("learner.ppo.adam.beta2", a.beta2, 0.0, 0.999_999_9)?;
+        check_f32("learner.ppo.adam.eps", a.eps, 1e-30, 1.0)?;
+        Ok(())
+    }
+}
+
 /// Critic-loss settings the update needs besides [`PpoConfig`].
 #[derive(Clone, Debug)]
 pub struct CriticLossConfig {

@@ -144,6 +144,15 @@ impl Robot {
         Ok(m)
     }
 
+    /// Restores a [`Data::physics_state`] of this robot's model family.
+    pub fn set_physics_state(&mut self, state: &[f64]) -> Result<()> {
+        let model = match &self.model {
+            ModelSlot::Own { model, .. } => model,
+            ModelSlot::Shared(m) => m.as_ref(),
+        };
+        self.data.set_physics_state(model, state)
+    }
+
     /// Resets the state to the default keyframe.
     pub fn reset_to_default(&mut self) -> Result<()> {
         let key = self.control.default_keyframe.clone();

@@ -66,8 +66,17 @@ impl ControlConfig {
                 self.kd_nm_s_per_rad
             ));
         }
-        if self.decimation == 0 {
-            return Err("control.decimation must be at least 1".into());
+        if !(1..=1000).contains(&self.decimation) {
+            return Err(format!(
+                "control.decimation must be in 1..=1000, got {}",
+                self.decimation
+            ));
+        }
+        if self.physics_dt_s > 1.0 || self.kp_nm_per_rad > 1e6 || self.kd_nm_s_per_rad > 1e6 {
+            return Err(format!(
+                "control: physics_dt_s ({} s) must be at most 1, kp_nm_per_rad ({}) and kd_nm_s_per_rad ({}) at most 1e6",
+                self.physics_dt_s, self.kp_nm_per_rad, self.kd_nm_s_per_rad
+            ));
         }
         if self
             .torque_limits_nm

@@ -14,6 +14,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::ProgressBar;
 
 use super::metrics::{EpisodeStats, MetricsCsv};
+use super::resume::encode_rank_state;
 use super::train::{log_line, save_both, RunDir, RunLock};
 use super::Progress;
 use crate::config::TrainConfig;
@@ -71,7 +72,7 @@ fn add_history(
     *envs = venv;
     *learner = grown;
     *cfg = next;
-    std::fs::write(dir.root.join("config.toml"), cfg.to_toml()).context("writing config.toml")?;
+    crate::fsio::write_atomic(&dir.root.join("config.toml"), cfg.to_toml().as_bytes())?;
     Ok(())
 }
 
@@ -124,6 +125,8 @@ pub(super) fn adaptation_phase(
     let mut episodes = Vec::new();
     while progress.iteration < end {
         if stop.load(Ordering::SeqCst) {
+            progress.rank_states =
+                vec![encode_rank_state(envs, obs, &EpisodeStats::default(), None)];
             let path = save_both(dir, learner, cfg, progress)?;
             log_line(
                 bar,
@@ -200,6 +203,8 @@ pub(super) fn adaptation_phase(
             episodes.clear();
         }
         if progress.iteration.is_multiple_of(r.save_interval) || progress.iteration == end {
+            progress.rank_states =
+                vec![encode_rank_state(envs, obs, &EpisodeStats::default(), None)];
             last = Some(save_both(dir, learner, cfg, progress)?);
         }
     }
@@ -251,6 +256,8 @@ pub fn restart_adaptation(dir: &RunDir) -> Result<usize> {
         iteration: phase1_end,
         total_env_steps,
         wall_s,
+        // phase 2's envs are not those of phase 1's end: that resume is not exact
+        rank_states: Vec::new(),
         ..loaded.progress
     };
     let discarded = dir.root.join("discarded-adaptation");
@@ -260,7 +267,8 @@ pub fn restart_adaptation(dir: &RunDir) -> Result<usize> {
         "latest-at-{}.safetensors",
         loaded.progress.iteration
     ));
-    std::fs::copy(&path, &old).with_context(|| format!("keeping {}", old.display()))?;
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    crate::fsio::write_atomic(&old, &bytes)?;
     for (it, p) in dir.checkpoints_by_iteration() {
         if it > phase1_end {
             let to = discarded.join(p.file_name().context("checkpoint without a name")?);

@@ -103,6 +103,15 @@ impl World {
         }
     }
 
+    /// Every rank's `mine`, in rank order, on rank 0 (other ranks get nothing).
+    pub fn gather_bytes(&self, mine: &[u8]) -> Result<Vec<Vec<u8>>> {
+        match self {
+            World::Single => Ok(vec![mine.to_vec()]),
+            #[cfg(feature = "mpi")]
+            World::Mpi(w) => w.gather_bytes(mine),
+        }
+    }
+
     /// Ends every process of the job (after an error on one rank, the others
     /// would wait forever for its next sum).
     pub fn abort(&self, code: i32) -> ! {
@@ -166,9 +175,11 @@ mod mpi_world {
 
     use anyhow::{Context, Result};
     use mpi::collective::SystemOperation;
+    use mpi::datatype::PartitionMut;
     use mpi::environment::Universe;
     use mpi::topology::{Communicator, SimpleCommunicator};
     use mpi::traits::*;
+    use mpi::Count;
     use mpi::Threading;
 
     /// MPI_COMM_WORLD of this job; MPI is finalised when it drops.
@@ -234,6 +245,38 @@ mod mpi_world {
             let mut out = vec![0u64; self.size()];
             self.world.all_gather_into(&value, &mut out[..]);
             out
+        }
+
+        pub fn gather_bytes(&self, mine: &[u8]) -> Result<Vec<Vec<u8>>> {
+            let lens = self.all_gather_u64(mine.len() as u64);
+            let root = self.world.process_at_rank(0);
+            if self.rank() != 0 {
+                root.gather_varcount_into(mine);
+                return Ok(Vec::new());
+            }
+            let counts = lens
+                .iter()
+                .map(|&l| Count::try_from(l))
+                .collect::<std::result::Result<Vec<Count>, _>>()
+                .context("a rank's state is larger than one MPI message (2 GiB)")?;
+            let mut displs = Vec::with_capacity(counts.len());
+            let mut total: Count = 0;
+            for &c in &counts {
+                displs.push(total);
+                total = total
+                    .checked_add(c)
+                    .context("the ranks' states together exceed one MPI message (2 GiB)")?;
+            }
+            let mut all = vec![0u8; total as usize];
+            {
+                let mut part = PartitionMut::new(&mut all[..], &counts[..], &displs[..]);
+                root.gather_varcount_into_root(mine, &mut part);
+            }
+            Ok(counts
+                .iter()
+                .zip(&displs)
+                .map(|(&c, &d)| all[d as usize..(d + c) as usize].to_vec())
+                .collect())
         }
 
         pub fn abort(&self, code: i32) -> ! {

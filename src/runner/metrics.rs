@@ -231,17 +231,7 @@ impl MetricsCsv {
                 kept.push_str(&row.join(","));
                 kept.push('\n');
             }
-            let tmp = path.with_extension("csv.tmp");
-            let write = || -> std::io::Result<()> {
-                let mut f = File::create(&tmp)?;
-                f.write_all(kept.as_bytes())?;
-                f.sync_all()?;
-                std::fs::rename(&tmp, path)
-            };
-            if let Err(e) = write() {
-                let _ = std::fs::remove_file(&tmp);
-                return Err(e).with_context(|| format!("rewriting {}", path.display()));
-            }
+            crate::fsio::write_atomic(path, kept.as_bytes())?;
         }
         Self::open_with(path, head)
     }

@@ -4,6 +4,7 @@ mod adapt;
 pub mod dist;
 pub mod metrics;
 pub mod policy_file;
+mod resume;
 pub mod train;
 
 pub use adapt::{install_teacher, restart_adaptation};

@@ -2,7 +2,8 @@
 //! (config, observation layout, version). Written atomically by `learn::checkpoint`.
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use anyhow::{bail, Context, Result};
 
@@ -10,7 +11,7 @@ use crate::config::TrainConfig;
 use crate::env::observation::layout_string;
 use crate::env::{ACT_DIM, OBS_DIM};
 use crate::learn::{
-    load_checkpoint, parse_checkpoint, save_checkpoint, LatentSource, Learner, NamedTensor,
+    decode_checkpoint, read_checkpoint, save_checkpoint_with, Checkpoint, LatentSource, Learner,
     ObsLayout,
 };
 
@@ -29,7 +30,16 @@ pub struct Progress {
     pub rng_word_pos: u128,
     /// Every env's terrain-curriculum level (rough ground; `None` on flat).
     pub terrain_levels: Option<Vec<usize>>,
+    /// Each MPI rank's runner state (its envs' episodes and RNGs, observations,
+    /// last episode statistics; see `train`), rank 0 first: what a resume needs
+    /// to continue bit for bit. Empty in checkpoints written before it existed.
+    pub rank_states: Vec<Vec<u8>>,
 }
+
+/// Byte tensor of the learner's exact state ([`Learner::exact_state`]).
+const LEARNER_EXACT: &str = "learner.exact";
+/// Prefix of the byte tensors of the ranks' runner states.
+const RANK_STATE_PREFIX: &str = "runner.rank.";
 
 /// Writes `learner` + `progress` + `cfg` to `path` (temp file + rename).
 pub fn save_policy(
@@ -74,7 +84,11 @@ pub fn save_policy(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    save_checkpoint(path, &learner.state(), &meta)
+    let mut blobs = vec![(LEARNER_EXACT.to_string(), learner.exact_state())];
+    for (rank, bytes) in progress.rank_states.iter().enumerate() {
+        blobs.push((format!("{RANK_STATE_PREFIX}{rank}"), bytes.clone()));
+    }
+    save_checkpoint_with(path, &learner.state(), &blobs, &meta)
 }
 
 /// A loaded checkpoint: the learner (weights, optimiser, lr), its config and progress.
@@ -82,6 +96,9 @@ pub struct LoadedPolicy {
     pub learner: Learner,
     pub config: TrainConfig,
     pub progress: Progress,
+    /// The checkpoint holds everything a bit-identical resume needs (the
+    /// learner's RNG and step counts, every rank's runner state).
+    pub exact: bool,
 }
 
 fn meta_value<'a>(meta: &'a HashMap<String, String>, key: &str, path: &Path) -> Result<&'a str> {
@@ -110,18 +127,39 @@ fn meta_parse<T: std::str::FromStr>(
 /// Loads a checkpoint, refusing one whose format, observation layout or
 /// tensor shapes do not match this build.
 pub fn load_policy(path: &Path) -> Result<LoadedPolicy> {
-    policy_from_parts(load_checkpoint(path)?, path)
+    let ckpt = read_checkpoint(path)?;
+    if !ckpt.verified {
+        note_unverified(path);
+    }
+    policy_from_parts(ckpt, path)
 }
 
-/// [`load_policy`] of a checkpoint file's bytes (e.g. broadcast from MPI rank 0).
+/// [`load_policy`] of a checkpoint file's bytes (e.g. broadcast from MPI rank
+/// 0, which has already said whether the file carries checksums).
 pub fn load_policy_bytes(bytes: &[u8], path: &Path) -> Result<LoadedPolicy> {
-    policy_from_parts(parse_checkpoint(bytes, path)?, path)
+    policy_from_parts(decode_checkpoint(bytes, path)?, path)
 }
 
-fn policy_from_parts(
-    (tensors, meta): (Vec<NamedTensor>, HashMap<String, String>),
-    path: &Path,
-) -> Result<LoadedPolicy> {
+/// Says once per file and process that `path` has no checksums to verify.
+fn note_unverified(path: &Path) {
+    static SEEN: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+    let mut seen = SEEN.lock().unwrap_or_else(|e| e.into_inner());
+    if !seen.iter().any(|p| p == path) {
+        seen.push(path.to_path_buf());
+        eprintln!(
+            "note: {} has no checksums (written by an older rall): loaded unverified",
+            path.display()
+        );
+    }
+}
+
+fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
+    let Checkpoint {
+        tensors,
+        blobs,
+        metadata: meta,
+        ..
+    } = ckpt;
     let format = meta_value(&meta, "format", path)?;
     if format != "rall-checkpoint" {
         bail!(
@@ -176,6 +214,7 @@ fn policy_from_parts(
                     })
             })
             .transpose()?,
+        rank_states: rank_states(&blobs),
     };
     // the row's groups: stored since groups exist, else the policy group alone
     let stored_layout = match meta.get("obs_groups") {
@@ -207,9 +246,31 @@ fn policy_from_parts(
             path.display()
         )
     })?;
+    let exact_learner = blobs.iter().find(|(n, _)| n == LEARNER_EXACT);
+    if let Some((_, bytes)) = exact_learner {
+        learner
+            .load_exact_state(bytes)
+            .with_context(|| format!("{}: the learner's exact state", path.display()))?;
+    }
+    let exact = exact_learner.is_some() && !progress.rank_states.is_empty();
     Ok(LoadedPolicy {
         learner,
         config,
         progress,
+        exact,
     })
+}
+
+/// The ranks' runner states `runner.rank.0`, `runner.rank.1`, ... (stops at
+/// the first rank missing).
+fn rank_states(blobs: &[(String, Vec<u8>)]) -> Vec<Vec<u8>> {
+    (0..)
+        .map_while(|rank| {
+            let name = format!("{RANK_STATE_PREFIX}{rank}");
+            blobs
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, b)| b.clone())
+        })
+        .collect()
 }

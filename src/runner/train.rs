@@ -20,6 +20,7 @@ use rand_chacha::ChaCha8Rng;
 use super::dist::{diverged_ranks, hash_f32, rank_seed, World};
 use super::metrics::{CollectTimes, EpisodeStats, IterationRow, MetricsCsv};
 use super::policy_file::{load_policy, load_policy_bytes, save_policy, Progress};
+use super::resume::{exact_state, gather_rank_states, start_envs};
 use crate::config::TrainConfig;
 use crate::env::risk::NUM_RISK_TERMS;
 use crate::env::{build_scene, EpisodeSummary, VecEnv, ACT_DIM};
@@ -49,14 +50,22 @@ impl RunDir {
         self.root.join("metrics.csv")
     }
 
-    /// Removes temp files a killed or failed write left behind.
+    /// Removes the temp files a killed or failed write of rall left behind
+    /// (only its own names: a shared folder's other `*.tmp` files stay).
     fn remove_temp_files(&self) {
-        for d in [self.root.clone(), self.root.join("checkpoints")] {
+        for (d, in_checkpoints) in [
+            (self.root.clone(), false),
+            (self.root.join("checkpoints"), true),
+        ] {
             let Ok(entries) = std::fs::read_dir(&d) else {
                 continue;
             };
             for e in entries.flatten() {
-                if e.path().extension().is_some_and(|x| x == "tmp") {
+                let name = e.file_name();
+                let ours = name
+                    .to_str()
+                    .is_some_and(|n| crate::fsio::is_rall_temp(n, in_checkpoints));
+                if ours && e.file_type().is_ok_and(|t| t.is_file()) {
                     let _ = std::fs::remove_file(e.path());
                 }
             }
@@ -101,25 +110,36 @@ impl RunDir {
         TrainConfig::from_toml_file(&stored).map(Some)
     }
 
-    /// The checkpoint to resume from: `latest`, or when it is missing or
-    /// unreadable the newest numbered checkpoint that loads.
+    /// The checkpoint to resume from: `latest`, or when it is missing,
+    /// unreadable or corrupt the newest numbered checkpoint that loads intact.
+    /// Says nothing (see [`RunDir::resume_point_noting`]).
     pub fn resume_point(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
+        self.find_resume_point().map(|f| (f.path, f.loaded))
+    }
+
+    fn find_resume_point(&self) -> Result<Found> {
         let latest = self.latest();
         let latest_err = match load_policy(&latest) {
-            Ok(p) => return Ok((latest, p)),
+            Ok(loaded) => {
+                return Ok(Found {
+                    path: latest,
+                    loaded,
+                    passed_over: Vec::new(),
+                })
+            }
             Err(e) => e,
         };
+        let mut passed_over = vec![(latest, format!("{latest_err:#}"))];
         for path in self.numbered_checkpoints() {
             match load_policy(&path) {
-                Ok(p) => {
-                    eprintln!(
-                        "note: {} is unusable ({latest_err:#}); resuming from {}",
-                        latest.display(),
-                        path.display()
-                    );
-                    return Ok((path, p));
+                Ok(loaded) => {
+                    return Ok(Found {
+                        path,
+                        loaded,
+                        passed_over,
+                    })
                 }
-                Err(e) => eprintln!("note: skipping {}: {e:#}", path.display()),
+                Err(e) => passed_over.push((path, format!("{e:#}"))),
             }
         }
         Err(latest_err).with_context(|| {
@@ -129,6 +149,41 @@ impl RunDir {
             )
         })
     }
+
+    /// [`RunDir::resume_point`] for the run about to resume: says once which
+    /// checkpoint it falls back to and why, and moves the unreadable numbered
+    /// checkpoints it passed over aside (`<name>.corrupt`), so that nothing
+    /// picks them up later.
+    fn resume_point_noting(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
+        let found = self.find_resume_point()?;
+        if let Some((first, why)) = found.passed_over.first() {
+            let mut note = format!(
+                "note: {} is unusable ({why}); resuming from {}",
+                first.display(),
+                found.path.display()
+            );
+            for (p, _) in &found.passed_over[1..] {
+                let mut aside = p.as_os_str().to_owned();
+                aside.push(".corrupt");
+                if std::fs::rename(p, &aside).is_ok() {
+                    note.push_str(&format!(
+                        "; unreadable {} moved to {}",
+                        p.display(),
+                        Path::new(&aside).display()
+                    ));
+                }
+            }
+            eprintln!("{note}");
+        }
+        Ok((found.path, found.loaded))
+    }
+}
+
+/// A resume point and the unusable checkpoints passed over on the way (path, why).
+struct Found {
+    path: PathBuf,
+    loaded: crate::runner::LoadedPolicy,
+    passed_over: Vec<(PathBuf, String)>,
 }
 
 /// Held while a process trains in a run directory: `train.lock` with its pid.
@@ -271,7 +326,7 @@ pub fn train_in(
     // rank 0 picks and loads the checkpoint (none: the run starts again)
     let (mut path, mut resumed) = (PathBuf::new(), None);
     if resume && root {
-        match dir.resume_point() {
+        match dir.resume_point_noting() {
             Ok((p, loaded)) => (path, resumed) = (p, Some(loaded)),
             // stopped before its first checkpoint: start it again from its config
             Err(e) => {
@@ -300,6 +355,30 @@ pub fn train_in(
         }
     }
     let resume = resumed.is_some();
+    let exact = match &resumed {
+        Some(loaded) => match exact_state(&loaded.progress, loaded.exact, rank, ranks) {
+            Ok(state) => Some(state),
+            Err(why) => {
+                if root {
+                    eprintln!(
+                        "note: {} resumes, but not bit-identically to an uninterrupted run: {why}",
+                        path.display()
+                    );
+                }
+                None
+            }
+        },
+        None => None,
+    };
+    if let Some(loaded) = resumed.as_ref().filter(|_| root && exact.is_some()) {
+        let (then, now) = (loaded.config.runner.threads, cfg.runner.threads);
+        if then != now {
+            eprintln!(
+                "note: {} was trained with runner.threads = {then}, this resume uses {now}: the update sums its shards in another order, so the run is not bit-identical to an uninterrupted one",
+                path.display()
+            );
+        }
+    }
     let (mut cfg, mut learner, mut progress) = if let Some(loaded) = resumed {
         let stored = keep_runner_settings(loaded.config, &cfg, loaded.progress.iteration)
             .with_context(|| format!("resuming from {}", path.display()))?;
@@ -357,8 +436,7 @@ pub fn train_in(
         }
     }
     if root {
-        std::fs::write(dir.root.join("config.toml"), cfg.to_toml())
-            .context("writing config.toml")?;
+        crate::fsio::write_atomic(&dir.root.join("config.toml"), cfg.to_toml().as_bytes())?;
     }
 
     let r = &cfg.runner;
@@ -374,31 +452,18 @@ pub fn train_in(
             rayon::current_num_threads()
         );
     }
-    // Envs restart fresh episodes on resume, seeded by the iteration so a resumed
-    // run does not replay the first run's episodes.
-    let env_seed = rank_seed(
-        r.seed.wrapping_add(progress.iteration as u64 * 0x9E37_79B9),
-        rank,
-    );
+    r.check_memory(cfg.env.obs_width())?;
     let scene = build_scene(&cfg.env, r.seed).context("building the scene")?;
-    let mut envs = VecEnv::new(
-        Arc::new(cfg.env.clone()),
-        &scene.model,
-        scene.terrain.clone(),
-        r.num_envs,
-        threads,
-        env_seed,
-    )?;
-    if let Some(levels) = &progress.terrain_levels {
-        envs.restore_terrain_levels(&rank_levels(levels, rank, r.num_envs))
-            .context("restoring the terrain curriculum of the checkpoint")?;
-    }
-    if cfg.env.episode.randomize_initial_length {
-        envs.randomize_episode_progress();
-    }
-    // action noise: each rank its own stream (same number of draws on every rank)
-    let mut rng = ChaCha8Rng::seed_from_u64(rank_seed(progress.rng_seed, rank));
-    rng.set_word_pos(progress.rng_word_pos);
+    let exact = exact.as_deref();
+    let start = start_envs(&cfg, &scene, threads, rank, &progress, exact)?;
+    let (mut envs, mut obs, mut last_stats, env_seed) =
+        (start.envs, start.obs, start.last_stats, start.env_seed);
+    // action noise: each rank its own stream; an exact resume continues it
+    let mut rng = start.action_rng.unwrap_or_else(|| {
+        let mut r = ChaCha8Rng::seed_from_u64(rank_seed(progress.rng_seed, rank));
+        r.set_word_pos(progress.rng_word_pos);
+        r
+    });
     let mut rollout = Rollout::new(r.steps_per_env, r.num_envs, envs.obs_width(), ACT_DIM);
     // a resumed run continues from its checkpoint: later rows are dropped
     let mut metrics = match root {
@@ -420,14 +485,15 @@ pub fn train_in(
             log_line(&bar, line)
         }
     };
-    let mut obs = envs.batch().obs.clone();
     let mut episodes: Vec<EpisodeSummary> = Vec::with_capacity(r.num_envs * 4);
-    let mut last_stats = EpisodeStats::default();
     let mut interrupted = false;
     let mut last_checkpoint = dir.latest();
+    // what a divergence names as the last good state (none before the first save)
+    let mut last_good: Option<PathBuf> = resume.then(|| path.clone());
     let wall_start = Instant::now() - std::time::Duration::from_secs_f64(progress.wall_s);
     let mut instabilities_before = envs.instabilities();
     let fault = divergence_fault()?;
+    let nan_fault = nan_fault()?;
 
     while progress.iteration < r.iterations {
         // a signal on any rank stops all of them at the same iteration
@@ -490,7 +556,15 @@ pub fn train_in(
         let t1 = Instant::now();
         let update: UpdateStats = learner.update_with(&rollout, world)?;
         let learn_s = t1.elapsed().as_secs_f64();
-        ensure_finite(&update, &learner, progress.iteration + 1, &last_checkpoint)?;
+        if nan_fault == Some(progress.iteration + 1) {
+            poison_one_weight(&mut learner)?;
+        }
+        ensure_finite(
+            &update,
+            &learner,
+            progress.iteration + 1,
+            last_good.as_deref(),
+        )?;
         if fault == Some((rank, progress.iteration + 1)) {
             nudge_one_weight(&mut learner)?;
         }
@@ -575,8 +649,15 @@ pub fn train_in(
             check_same_state(world, &learner, progress.iteration)?;
         }
         if save {
-            last_checkpoint =
-                save_job_checkpoint(world, &dir, &learner, &cfg, &mut progress, &envs)?;
+            last_checkpoint = save_job_checkpoint(
+                world,
+                &dir,
+                &learner,
+                &cfg,
+                &mut progress,
+                (&envs, &obs, &last_stats, &rng),
+            )?;
+            last_good = Some(last_checkpoint.clone());
         }
     }
     let at_phase_one_end =
@@ -627,7 +708,14 @@ pub fn train_in(
         if ranks > 1 {
             check_same_state(world, &learner, progress.iteration)?;
         }
-        last_checkpoint = save_job_checkpoint(world, &dir, &learner, &cfg, &mut progress, &envs)?;
+        last_checkpoint = save_job_checkpoint(
+            world,
+            &dir,
+            &learner,
+            &cfg,
+            &mut progress,
+            (&envs, &obs, &last_stats, &rng),
+        )?;
         say(format!(
             "interrupted: checkpoint written at iteration {}",
             progress.iteration
@@ -750,7 +838,7 @@ impl JobIteration {
 /// Rank `rank`'s terrain levels from a checkpoint's: its own slice when the
 /// checkpoint holds every rank's (`ranks x num_envs`), else the stored levels
 /// cycled (a checkpoint of another rank count).
-fn rank_levels(stored: &[usize], rank: usize, num_envs: usize) -> Vec<usize> {
+pub(super) fn rank_levels(stored: &[usize], rank: usize, num_envs: usize) -> Vec<usize> {
     if stored.is_empty() {
         return Vec::new();
     }
@@ -810,6 +898,25 @@ fn divergence_fault() -> Result<Option<(usize, usize)>> {
     }
 }
 
+/// Fault injection for the divergence stop's test: `RALL_FAULT_NAN=<iteration>`
+/// makes one weight NaN after that iteration's update.
+fn nan_fault() -> Result<Option<usize>> {
+    match std::env::var("RALL_FAULT_NAN") {
+        Err(_) => Ok(None),
+        Ok(v) => v
+            .parse()
+            .map(Some)
+            .map_err(|_| anyhow::anyhow!("RALL_FAULT_NAN={v:?}: expected an iteration")),
+    }
+}
+
+/// Sets the first weight to NaN (the injected numerical failure).
+fn poison_one_weight(learner: &mut Learner) -> Result<()> {
+    let mut state = learner.state();
+    state[0].data[0] = f32::NAN;
+    learner.load_state(&state)
+}
+
 /// Adds 1e-3 to the first weight (the injected divergence).
 fn nudge_one_weight(learner: &mut Learner) -> Result<()> {
     let mut state = learner.state();
@@ -824,8 +931,9 @@ fn save_job_checkpoint(
     learner: &Learner,
     cfg: &TrainConfig,
     progress: &mut Progress,
-    envs: &VecEnv,
+    (envs, obs, last_stats, rng): (&VecEnv, &[f32], &EpisodeStats, &ChaCha8Rng),
 ) -> Result<PathBuf> {
+    progress.rank_states = gather_rank_states(world, envs, obs, last_stats, rng)?;
     progress.terrain_levels = match envs.terrain_levels() {
         Some(mine) if world.size() > 1 => {
             // each rank fills its own slice; the sum gathers them all
@@ -851,7 +959,7 @@ fn ensure_finite(
     u: &UpdateStats,
     learner: &Learner,
     iteration: usize,
-    last_checkpoint: &Path,
+    last_good: Option<&Path>,
 ) -> Result<()> {
     let losses_ok =
         u.policy_loss.is_finite() && u.value_loss.is_finite() && u.grad_norm.is_finite();
@@ -863,12 +971,15 @@ fn ensure_finite(
         return Ok(());
     }
     anyhow::bail!(
-        "training diverged at iteration {iteration}: policy loss {}, value loss {}, gradient norm {}{} (check observation scales, reward weights and the physics dt); nothing was saved after the last good checkpoint {}",
+        "training diverged at iteration {iteration}: policy loss {}, value loss {}, gradient norm {}{} (check observation scales, reward weights and the physics dt); {}",
         u.policy_loss,
         u.value_loss,
         u.grad_norm,
         if weights_ok { "" } else { ", non-finite weights" },
-        last_checkpoint.display()
+        match last_good {
+            Some(p) => format!("nothing was saved after the last good checkpoint {}", p.display()),
+            None => "no checkpoint was written before it".into(),
+        }
     )
 }
 

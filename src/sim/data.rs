@@ -29,6 +29,8 @@ struct Shape {
     nu: i32,
     nbody: i32,
     ngeom: i32,
+    na: i32,
+    nmocap: i32,
     /// Arena capacities (`<size>`), for [`Data::arena_use`].
     nconmax: i32,
     njmax: i32,
@@ -44,6 +46,8 @@ impl Shape {
             nu: m.nu,
             nbody: m.nbody,
             ngeom: m.ngeom,
+            na: m.na,
+            nmocap: m.nmocap,
             nconmax: m.nconmax,
             njmax: m.njmax,
         }
@@ -488,6 +492,61 @@ impl Data {
         };
         shim::check(rc, "mj_contactForce")?;
         Ok(out)
+    }
+
+    /// The arrays `mj_step` reads besides the model, in a fixed order: time,
+    /// qpos, qvel, act, ctrl, qacc_warmstart (the constraint solver's starting
+    /// point), qfrc_applied, xfrc_applied, mocap_pos, mocap_quat. Everything else
+    /// in mjData is recomputed from these by the next step, so restoring them
+    /// ([`Data::set_physics_state`]) continues the simulation bit for bit.
+    pub fn physics_state(&self) -> Vec<f64> {
+        let d = self.d();
+        let mut out = vec![d.time];
+        for (p, n) in self.state_arrays() {
+            out.extend_from_slice(self.reals(p, n));
+        }
+        out
+    }
+
+    /// Restores [`Data::physics_state`] (same model family, same length).
+    pub fn set_physics_state(&mut self, model: &Model, state: &[f64]) -> Result<()> {
+        self.check_model(model)?;
+        let arrays = self.state_arrays();
+        let len = 1 + arrays
+            .iter()
+            .map(|&(_, n)| n.max(0) as usize)
+            .sum::<usize>();
+        if state.len() != len {
+            return Err(SimError::Invalid(format!(
+                "a physics state of {} values for a model whose state has {len}",
+                state.len()
+            )));
+        }
+        self.set_time_s(state[0]);
+        let mut at = 1;
+        for (p, n) in arrays {
+            let dst = self.reals_mut(p, n);
+            dst.copy_from_slice(&state[at..at + dst.len()]);
+            at += dst.len();
+        }
+        self.broken = None;
+        Ok(())
+    }
+
+    /// Pointers and lengths of the arrays of [`Data::physics_state`].
+    fn state_arrays(&self) -> [(*mut f64, i32); 9] {
+        let (d, s) = (self.d(), &self.shape);
+        [
+            (d.qpos, s.nq),
+            (d.qvel, s.nv),
+            (d.act, s.na),
+            (d.ctrl, s.nu),
+            (d.qacc_warmstart, s.nv),
+            (d.qfrc_applied, s.nv),
+            (d.xfrc_applied, 6 * s.nbody),
+            (d.mocap_pos, 3 * s.nmocap),
+            (d.mocap_quat, 4 * s.nmocap),
+        ]
     }
 
     fn reals(&self, p: *mut f64, n: i32) -> &[f64] {

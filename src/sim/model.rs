@@ -88,6 +88,8 @@ pub struct Model {
 // SAFETY: an mjModel is a plain heap allocation with no thread affinity; shared
 // access is read-only (mj_step takes `const mjModel*`).
 unsafe impl Send for Model {}
+// SAFETY: `&Model` only reads the mjModel (every writer takes `&mut Model`), and
+// MuJoCo's readers of a `const mjModel*` do not mutate it.
 unsafe impl Sync for Model {}
 
 impl Drop for Model {
@@ -242,6 +244,8 @@ impl Model {
         if p.is_null() {
             return "";
         }
+        // SAFETY: p is non-null and points at a NUL-terminated name inside the
+        // model's name buffer, which lives (unchanged) as long as &self.
         unsafe { CStr::from_ptr(p) }.to_str().unwrap_or("")
     }
 
@@ -558,6 +562,7 @@ fn load(file: &CStr, vfs: Option<&Vfs>, name: &str) -> Result<Model> {
     // SAFETY: the buffer was zeroed and MuJoCo writes at most LOAD_ERROR_LEN - 1
     // characters; the last byte stays NUL.
     err[LOAD_ERROR_LEN - 1] = 0;
+    // SAFETY: `err` is a live local buffer ending in the NUL just written.
     let message = unsafe { CStr::from_ptr(err.as_ptr()) }
         .to_string_lossy()
         .trim()
@@ -587,6 +592,8 @@ impl Vfs {
     fn with_file(name: &CStr, content: &[u8]) -> Result<Vfs> {
         // SAFETY: mjVFS is plain old data; zeroed is a valid start, then defaulted.
         let mut raw: Box<ffi::mjVFS> = unsafe { Box::new(std::mem::zeroed()) };
+        // SAFETY: `raw` is a live, exclusively owned mjVFS; mj_defaultVFS only
+        // initialises its fields.
         unsafe { ffi::mj_defaultVFS(&mut *raw) };
         let size = i32::try_from(content.len())
             .map_err(|_| SimError::Invalid("MJCF text larger than 2 GiB".into()))?;
@@ -597,6 +604,7 @@ impl Vfs {
                 "MuJoCo VFS refused the file (code {rc})"
             )));
         }
+        // SAFETY: valid, initialised VFS and a NUL-terminated name; read-only lookup.
         let index = unsafe { ffi::mj_findFileVFS(&*raw, name.as_ptr()) };
         if index < 0 {
             return Err(SimError::Invalid("MuJoCo VFS lost the file".into()));
