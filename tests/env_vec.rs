@@ -271,3 +271,52 @@ fn a_shared_model_gives_the_trajectories_of_per_env_model_copies() {
         }
     }
 }
+
+/// Runs one env with every risk term firing at every step until its episode
+/// ends; returns the episode's summary.
+fn episode_with_every_penalty_firing(
+    length_s: f64,
+    max_tilt_rad: f64,
+) -> rall::env::EpisodeSummary {
+    let mut c = cfg();
+    c.episode.length_s = length_s;
+    c.episode.max_tilt_rad = max_tilt_rad;
+    c.risk.probability = 1.0;
+    c.risk.base_pitch.threshold = 0.0;
+    c.risk.base_roll.threshold = 0.0;
+    c.risk.joint_velocity.threshold = 0.0;
+    c.risk.joint_acceleration.threshold = 0.0;
+    c.risk.joint_torque.threshold = 0.0;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 0).unwrap();
+    let mut env = Env::new(c, &scene.model, None, 3, 0).unwrap();
+    let (mut obs, mut fin) = ([0.0f32; OBS_DIM], [0.0f32; OBS_DIM]);
+    env.reset(&mut obs).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    for _ in 0..10_000 {
+        // random actions while tilt must end the episode, standing still otherwise
+        let scale = if max_tilt_rad < 0.1 { 1.0 } else { 0.0 };
+        let a: Vec<f32> = (0..ACT_DIM)
+            .map(|_| scale * rng.gen_range(-1.0f32..1.0))
+            .collect();
+        if env.step(&a, &mut obs, &mut fin).done {
+            return env.take_summary().unwrap();
+        }
+    }
+    panic!("the episode never ended");
+}
+
+#[test]
+fn firings_in_the_last_second_before_a_fall_are_counted_and_a_time_out_counts_none() {
+    // tilt past 1e-6 rad ends the episode almost at once: every firing is within 1 s
+    let fell = episode_with_every_penalty_firing(20.0, 1e-6);
+    assert_ne!(fell.end, EpisodeEnd::TimeOut);
+    assert!(fell.steps <= 50, "{} steps", fell.steps);
+    assert!(fell.risk_fired.iter().any(|&n| n > 0));
+    assert_eq!(fell.risk_fired_before_fall, fell.risk_fired);
+    // a 2 s episode that times out: firings, none before a fall
+    let timed_out = episode_with_every_penalty_firing(2.0, 3.0);
+    assert_eq!(timed_out.end, EpisodeEnd::TimeOut);
+    assert!(timed_out.risk_fired.iter().all(|&n| n > 50));
+    assert_eq!(timed_out.risk_fired_before_fall, [0; 5]);
+}

@@ -8,7 +8,7 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-use rall::experiment::{run_experiment, ExperimentOptions, ExperimentSpec};
+use rall::experiment::{run_experiment, ship_all, ExperimentOptions, ExperimentSpec};
 use rall::learn::CriticKind;
 
 fn write_config(dir: &Path, name: &str, critic: CriticKind, eta: Option<f32>) -> String {
@@ -28,6 +28,7 @@ fn spec_text(dir: &Path, results: &str, extra: &str) -> String {
 name = "curves"
 runs_dir = "{runs}"
 results_dir = "{results}"
+shipped_dir = "{shipped}"
 threads = 2
 
 [[run]]
@@ -93,6 +94,7 @@ ttf = [0.539, 0.212, 0.292, 0.189]
 "#,
         runs = dir.join("runs").display(),
         results = dir.join(results).display(),
+        shipped = dir.join("shipped").display(),
     )
 }
 
@@ -140,7 +142,10 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         assert_eq!(line.split(',').nth(7), Some("2"), "{line}");
     }
     let md = std::fs::read_to_string(out.join("README.md")).unwrap();
-    assert!(md.contains("## Robustness curves") && md.contains("rung 4"), "{md}");
+    assert!(
+        md.contains("## Robustness curves") && md.contains("rung 4"),
+        "{md}"
+    );
     assert!(md.contains("## From checkpoint to checkpoint"), "{md}");
     assert!(md.contains("Strict: any contact"), "{md}");
     for fig in ["curve_ttf.svg", "curve_platform.svg", "curve_race.svg"] {
@@ -150,16 +155,47 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
     let ttf_svg = std::fs::read_to_string(out.join("figures/curve_ttf.svg")).unwrap();
     assert!(ttf_svg.contains("the paper, rung 0"));
 
+    // shipped as actor-only copies, the checkpoints evaluate to the same tables
+    ship_all(&spec, &file).unwrap();
+    let copy = dir
+        .path()
+        .join("shipped/rall-s1/checkpoints/model_000001.safetensors");
+    let full = dir
+        .path()
+        .join("runs/rall-s1/checkpoints/model_000001.safetensors");
+    let size = |p: &Path| std::fs::metadata(p).unwrap().len();
+    assert!(
+        size(&copy) < size(&full),
+        "{} >= {}",
+        size(&copy),
+        size(&full)
+    );
+    std::fs::remove_dir_all(dir.path().join("runs")).unwrap();
+    std::fs::write(&file, spec_text(dir.path(), "results-shipped", &extra)).unwrap();
+    let shipped = ExperimentSpec::from_file(&file).unwrap();
+    let eval_only = ExperimentOptions {
+        train: false,
+        ..all
+    };
+    run_experiment(&shipped, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
+    for f in ["ttf.csv", "platform.csv", "checkpoints.csv", "curves.csv"] {
+        let a = std::fs::read_to_string(out.join(f)).unwrap();
+        let b = std::fs::read_to_string(dir.path().join("results-shipped").join(f)).unwrap();
+        assert_eq!(
+            a, b,
+            "{f}: actor-only copies must evaluate as the checkpoints"
+        );
+    }
+    // an actor-only copy acts, but is never resumed
+    let loaded = rall::runner::load_policy(&copy).unwrap();
+    assert!(loaded.actor_only && !loaded.exact);
+
     // more checkpoints than a run keeps: refused, naming the missing one; nothing
     // already written is touched
     let before = std::fs::read_to_string(out.join("README.md")).unwrap();
     let extra = format!("{CURVES}\n[checkpoints]\nlast = 2\nevery = 5\n");
     std::fs::write(&file, spec_text(dir.path(), "results", &extra)).unwrap();
     let spec = ExperimentSpec::from_file(&file).unwrap();
-    let eval_only = ExperimentOptions {
-        train: false,
-        ..all
-    };
     let err = format!(
         "{:#}",
         run_experiment(&spec, &eval_only, Arc::new(AtomicBool::new(false))).unwrap_err()

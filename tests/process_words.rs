@@ -63,7 +63,10 @@ fn offending(line: &str) -> Option<&'static str> {
         }
     }
     let fixed: [(&str, &'static str); 4] = [
-        (concat!("../", "shared"), concat!("a path into ../", "shared")),
+        (
+            concat!("../", "shared"),
+            concat!("a path into ../", "shared"),
+        ),
         (concat!("design", ".md"), concat!("design", ".md")),
         (concat!("design", " section"), concat!("design", " section")),
         (concat!("design", " note"), concat!("design", " note")),
@@ -111,7 +114,10 @@ fn the_patterns_catch_what_they_should_and_nothing_else() {
 fn no_tracked_file_speaks_of_the_process() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     if !root.join(".git").exists() {
-        eprintln!("skipped: {} has no .git (not a git checkout)", root.display());
+        eprintln!(
+            "skipped: {} has no .git (not a git checkout)",
+            root.display()
+        );
         return;
     }
     let out = match Command::new("git")

@@ -581,25 +581,43 @@ fn ttf(a: &TtfArgs) -> Result<()> {
             &report.json(),
         );
     };
-    let mut outputs = Vec::new();
-    let mut points = Vec::new();
-    for &s in &rungs {
-        let rung = ladder.rung(s)?;
-        eprintln!("severity rung {s}");
+    run_ladder(&a.common.out, "ttf", &ladder, &rungs, |s, rung| {
         let report = run(&TtfOptions {
             params: rung.apply(&opts.params),
             ..opts.clone()
         })?;
+        let mut points = Vec::new();
         for p in &policies {
             let one = [p.name.clone()];
             let r = Resampling::default();
             points.extend(ttf_point(&report, &one, &p.name, s, false, r));
             points.extend(ttf_point(&report, &one, &p.name, s, true, r));
         }
-        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
-        outputs.push((format!("ttf-severity{s}"), md, report.csv(), report.json()));
+        Ok((report.markdown(), report.csv(), report.json(), points))
+    })
+}
+
+/// One rung's table (markdown, CSV, JSON) and curve points.
+type RungOutput = (String, String, serde_json::Value, Vec<CurvePoint>);
+
+/// Runs `one` on every chosen rung, then writes every rung's table and the curve.
+fn run_ladder(
+    out: &Path,
+    benchmark: &str,
+    ladder: &Ladder,
+    rungs: &[usize],
+    mut one: impl FnMut(usize, &crate::eval::Rung) -> Result<RungOutput>,
+) -> Result<()> {
+    let mut outputs = Vec::new();
+    let mut points = Vec::new();
+    for &s in rungs {
+        eprintln!("severity rung {s}");
+        let (md, csv, json, p) = one(s, ladder.rung(s)?)?;
+        let md = format!("Severity rung {s}\n\n{}\n{md}", ladder.markdown(&[s]));
+        outputs.push((format!("{benchmark}-severity{s}"), md, csv, json));
+        points.extend(p);
     }
-    finish_ladder(&a.common.out, "ttf", &ladder, &rungs, outputs, &points)
+    finish_ladder(out, benchmark, ladder, rungs, outputs, &points)
 }
 
 /// Writes every rung's table and the curve, once every rung has been evaluated
@@ -624,7 +642,11 @@ fn finish_ladder(
     }
     for m in metrics {
         let these: Vec<CurvePoint> = points.iter().filter(|p| p.metric == m).cloned().collect();
-        let digits = if m == "ttf" || m == "strict_ttf" { 3 } else { 1 };
+        let digits = if m == "ttf" || m == "strict_ttf" {
+            3
+        } else {
+            1
+        };
         md.push_str(&format!(
             "\n{benchmark}: {m} against severity (95% bootstrap over robots)\n\n{}",
             curve_markdown(&these, digits)
@@ -634,7 +656,13 @@ fn finish_ladder(
         md.push_str(&format!("\n{FALL_DEFINITION}\n"));
     }
     let json = serde_json::json!({ "ladder": ladder, "rungs": rungs, "points": points });
-    finish(out, &format!("{benchmark}-curve"), &md, &curve_csv(points), &json)
+    finish(
+        out,
+        &format!("{benchmark}-curve"),
+        &md,
+        &curve_csv(points),
+        &json,
+    )
 }
 
 fn platform(a: &PlatformArgs) -> Result<()> {
@@ -690,24 +718,19 @@ fn platform(a: &PlatformArgs) -> Result<()> {
             &report.json(),
         );
     };
-    let mut outputs = Vec::new();
-    let mut points = Vec::new();
-    for &s in &rungs {
-        let rung = ladder.rung(s)?;
-        eprintln!("severity rung {s}");
+    run_ladder(&a.common.out, "platform", &ladder, &rungs, |s, rung| {
         let report = run(&PlatformOptions {
             heights_m: rung.platform_heights_m.clone(),
             params: rung.apply(&opts.params),
             ..opts.clone()
         })?;
+        let mut points = Vec::new();
         for p in &policies {
             let one = [p.name.clone()];
             points.extend(platform_point(&report, &one, &p.name, s, Resampling::default()));
         }
-        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
-        outputs.push((format!("platform-severity{s}"), md, report.csv(), report.json()));
-    }
-    finish_ladder(&a.common.out, "platform", &ladder, &rungs, outputs, &points)
+        Ok((report.markdown(), report.csv(), report.json(), points))
+    })
 }
 
 fn race(a: &RaceArgs) -> Result<()> {
@@ -792,21 +815,16 @@ fn race(a: &RaceArgs) -> Result<()> {
             &report.json(),
         );
     };
-    let mut outputs = Vec::new();
-    let mut points = Vec::new();
-    for &s in &rungs {
-        let rung = ladder.rung(s)?;
-        eprintln!("severity rung {s}");
+    run_ladder(&a.common.out, "race", &ladder, &rungs, |s, rung| {
         let report = run(&RaceOptions {
             params: rung.apply(&opts.params),
             ..opts.clone()
         })?;
+        let mut points = Vec::new();
         for row in &report.rows {
             let one = [row.name.clone()];
             points.extend(race_point(&report, &one, &row.name, s, Resampling::default()));
         }
-        let md = format!("Severity rung {s}\n\n{}\n{}", ladder.markdown(&[s]), report.markdown());
-        outputs.push((format!("race-severity{s}"), md, report.csv(), report.json()));
-    }
-    finish_ladder(&a.common.out, "race", &ladder, &rungs, outputs, &points)
+        Ok((report.markdown(), report.csv(), report.json(), points))
+    })
 }

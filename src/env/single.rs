@@ -57,6 +57,9 @@ pub enum EpisodeEnd {
     Unstable,
 }
 
+/// Risk firings this close before a fall count as marking danger (s).
+pub const FALL_WINDOW_S: f64 = 1.0;
+
 /// Summary of a finished episode, for logging and the curriculum.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EpisodeSummary {
@@ -70,6 +73,9 @@ pub struct EpisodeSummary {
     pub total_reward: f64,
     pub risk_exceeded: [u32; NUM_RISK_TERMS],
     pub risk_fired: [u32; NUM_RISK_TERMS],
+    /// Of `risk_fired`, the firings within [`FALL_WINDOW_S`] before the episode
+    /// ended in a fall (0 for a time-out): the penalties that marked danger.
+    pub risk_fired_before_fall: [u32; NUM_RISK_TERMS],
     /// Terrain level the episode ran on.
     pub terrain_level: usize,
     /// Horizontal distance from the spawn point (m).
@@ -137,6 +143,8 @@ pub struct Env {
     history: Vec<f32>,
     commanded_distance_m: f64,
     sums: EpisodeSummary,
+    /// (risk term, step in episode) of the firings of the last [`FALL_WINDOW_S`].
+    recent_firings: Vec<(usize, usize)>,
     /// Physics failures since creation.
     pub instabilities: u64,
     /// The most of MuJoCo's arena used in any finished episode.
@@ -236,6 +244,7 @@ impl Env {
             history: vec![0.0; history_len],
             commanded_distance_m: 0.0,
             sums: empty_summary(index),
+            recent_firings: Vec::new(),
             instabilities: 0,
             arena_peak: ArenaUse::default(),
             last_summary: None,
@@ -319,6 +328,7 @@ impl Env {
         self.commanded_distance_m = 0.0;
         self.sums = empty_summary(self.index);
         self.sums.terrain_level = self.terrain_level;
+        self.recent_firings.clear();
         let qd = self.robot.layout.joint_vel(self.robot.data().qvel());
         self.state = self.measure(&qd, &[0.0; NUM_JOINTS]);
         self.observe(obs);
@@ -509,9 +519,22 @@ impl Env {
         for i in 0..NUM_RISK_TERMS {
             self.sums.risk_exceeded[i] += risk.exceeded[i] as u32;
             self.sums.risk_fired[i] += risk.fired[i] as u32;
+            if risk.fired[i] {
+                self.recent_firings.push((i, self.step_in_episode));
+            }
         }
+        let window = self.fall_window_steps();
+        let now = self.step_in_episode;
+        self.recent_firings.retain(|&(_, s)| s + window > now);
         self.sums.risk_penalty += risk.penalty;
         self.sums.total_reward += reward;
+    }
+
+    /// [`FALL_WINDOW_S`] in policy steps.
+    fn fall_window_steps(&self) -> usize {
+        (FALL_WINDOW_S / self.cfg.control.policy_dt_s())
+            .round()
+            .max(1.0) as usize
     }
 
     fn termination(&self) -> Option<EpisodeEnd> {
@@ -552,6 +575,11 @@ impl Env {
         self.sums.end = end;
         self.sums.distance_m = if distance.is_finite() { distance } else { 0.0 };
         self.sums.commanded_distance_m = self.commanded_distance_m;
+        if end != EpisodeEnd::TimeOut {
+            for &(term, _) in &self.recent_firings {
+                self.sums.risk_fired_before_fall[term] += 1;
+            }
+        }
         self.last_summary = Some(self.sums);
         obs.copy_from_slice(final_obs);
         result
@@ -763,7 +791,7 @@ impl Env {
 }
 
 /// Tag of [`Env::snapshot`]'s layout.
-const ENV_SNAPSHOT_TAG: &str = "rall-env-1";
+const ENV_SNAPSHOT_TAG: &str = "rall-env-2";
 
 impl Env {
     /// The env's whole episode state between two steps (RNG, draw, command,
@@ -796,6 +824,11 @@ impl Env {
         w.f32s(&self.history);
         w.f64(self.commanded_distance_m);
         self.snapshot_sums(w);
+        w.usize(self.recent_firings.len());
+        for &(term, step) in &self.recent_firings {
+            w.usize(term);
+            w.usize(step);
+        }
         w.u64(self.instabilities);
         w.f64s(&self.robot.data().physics_state());
     }
@@ -853,6 +886,22 @@ impl Env {
         r.f32s_into(&mut self.history, "history")?;
         self.commanded_distance_m = r.f64()?;
         self.restore_sums(r)?;
+        let n = r.usize()?;
+        anyhow::ensure!(
+            n <= NUM_RISK_TERMS * (self.fall_window_steps() + 1),
+            "env {}: {n} recent risk firings cannot fit in the fall window",
+            self.index
+        );
+        self.recent_firings.clear();
+        for _ in 0..n {
+            let (term, step) = (r.usize()?, r.usize()?);
+            anyhow::ensure!(
+                term < NUM_RISK_TERMS,
+                "env {}: risk term {term}",
+                self.index
+            );
+            self.recent_firings.push((term, step));
+        }
         self.instabilities = r.u64()?;
         let physics = r.f64s()?;
         self.robot.set_physics_state(&physics)?;
@@ -889,6 +938,7 @@ fn empty_summary(env_index: usize) -> EpisodeSummary {
         total_reward: 0.0,
         risk_exceeded: [0; NUM_RISK_TERMS],
         risk_fired: [0; NUM_RISK_TERMS],
+        risk_fired_before_fall: [0; NUM_RISK_TERMS],
         terrain_level: 0,
         distance_m: 0.0,
         commanded_distance_m: 0.0,

@@ -56,15 +56,15 @@ pub struct FallReport {
     pub elsewhere: QuantileMeans,
 }
 
-/// Runs `robots` robots for `steps` policy steps in `cfg`'s training env.
-pub fn critic_before_falls(
-    learner: &Learner,
+/// `robots` envs of `cfg`'s training env, on the terrain curriculum at the
+/// checkpoint's stored `terrain_levels` (shared out round-robin).
+pub fn training_envs(
     cfg: &TrainConfig,
     terrain_levels: Option<&[usize]>,
-    (robots, steps, window): (usize, usize, usize),
+    robots: usize,
     threads: usize,
     seed: u64,
-) -> Result<FallReport> {
+) -> Result<VecEnv> {
     let scene = build_scene(&cfg.env, cfg.runner.seed)?;
     let mut envs = VecEnv::new(
         Arc::new(cfg.env.clone()),
@@ -78,6 +78,19 @@ pub fn critic_before_falls(
         let mine: Vec<usize> = (0..robots).map(|i| levels[i % levels.len()]).collect();
         envs.restore_terrain_levels(&mine)?;
     }
+    Ok(envs)
+}
+
+/// Runs `robots` robots for `steps` policy steps in `cfg`'s training env.
+pub fn critic_before_falls(
+    learner: &Learner,
+    cfg: &TrainConfig,
+    terrain_levels: Option<&[usize]>,
+    (robots, steps, window): (usize, usize, usize),
+    threads: usize,
+    seed: u64,
+) -> Result<FallReport> {
+    let mut envs = training_envs(cfg, terrain_levels, robots, threads, seed)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut obs = envs.batch().obs.clone();
     let k = FALL_TAUS.len();

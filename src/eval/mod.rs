@@ -28,9 +28,9 @@ pub use scenario::{
     build_named_scenario, build_scenario, GroundKind, Load, ScenarioHook, ScenarioParams,
     ScenarioSetup, ScenarioSpec,
 };
+pub use severity::{Ladder, Rung};
 pub use tracking::{
     evaluate_tracking, evaluate_tracking_with_falls, fall_rate, lin_vel_score, tracking_env,
     with_randomization, yaw_rate_score, ActionMode, FallRecord, RobotTracking, TrackingReport,
 };
-pub use severity::{Ladder, Rung};
 pub use ttf::{evaluate_ttf, time_to_fall, TtfOptions, TtfReport, FALL_DEFINITION};

@@ -4,15 +4,12 @@
 //! quantile of |joint velocity|, |joint acceleration| and |torque| becomes that
 //! joint's threshold, so a penalty marks what the walking gait rarely does.
 
-use std::sync::Arc;
-
 use anyhow::{ensure, Result};
 use rand::SeedableRng;
 
 use super::rollout::quantile;
 use crate::config::TrainConfig;
 use crate::env::risk::RISK_TERMS;
-use crate::env::{build_scene, VecEnv};
 use crate::learn::Learner;
 use crate::robot::NUM_JOINTS;
 
@@ -63,19 +60,7 @@ pub fn calibrate_risk(
         robots > 0 && steps > 0,
         "--robots and --steps must be at least 1"
     );
-    let scene = build_scene(&cfg.env, cfg.runner.seed)?;
-    let mut envs = VecEnv::new(
-        Arc::new(cfg.env.clone()),
-        &scene.model,
-        scene.terrain.clone(),
-        robots,
-        threads,
-        seed,
-    )?;
-    if let Some(levels) = terrain_levels.filter(|l| !l.is_empty()) {
-        let mine: Vec<usize> = (0..robots).map(|i| levels[i % levels.len()]).collect();
-        envs.restore_terrain_levels(&mine)?;
-    }
+    let mut envs = super::falls::training_envs(cfg, terrain_levels, robots, threads, seed)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut obs = envs.batch().obs.clone();
     let mut values: Vec<Vec<Vec<f64>>> = vec![vec![Vec::new(); NUM_JOINTS]; 3];
@@ -105,7 +90,10 @@ pub fn calibrate_risk(
             }
         }
     }
-    ensure!(states > 0, "no robot-step to measure: every robot fell at once");
+    ensure!(
+        states > 0,
+        "no robot-step to measure: every robot fell at once"
+    );
     let mut per_joint: [[f64; NUM_JOINTS]; 3] =
         std::array::from_fn(|k| std::array::from_fn(|j| round_up_3(quantile(&values[k][j], q))));
     let limits = &cfg.env.control.torque_limits_nm;

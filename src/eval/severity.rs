@@ -132,7 +132,8 @@ impl Ladder {
             bail!("severity ladder {what} has no [[rung]]");
         }
         for (i, r) in ladder.rungs.iter().enumerate() {
-            r.validate(i).with_context(|| format!("severity ladder {what}"))?;
+            r.validate(i)
+                .with_context(|| format!("severity ladder {what}"))?;
         }
         Ok(ladder)
     }

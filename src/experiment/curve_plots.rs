@@ -9,18 +9,9 @@ use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 
 use super::curves::CurvePoint;
+use super::plots::PALETTE;
 use super::results::ExperimentResults;
 
-const PALETTE: [RGBColor; 8] = [
-    RGBColor(31, 119, 180),
-    RGBColor(255, 127, 14),
-    RGBColor(44, 160, 44),
-    RGBColor(214, 39, 40),
-    RGBColor(148, 103, 189),
-    RGBColor(140, 86, 75),
-    RGBColor(227, 119, 194),
-    RGBColor(127, 127, 127),
-];
 
 fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing a curve figure: {e}")
@@ -137,7 +128,11 @@ fn curve_figure(
                 .map_err(err)?;
         }
     }
-    draw_legend(&legend, &methods, r.curve_paper.iter().any(|(b, _, _)| b == benchmark))?;
+    draw_legend(
+        &legend,
+        &methods,
+        r.curve_paper.iter().any(|(b, _, _)| b == benchmark),
+    )?;
     root.present().map_err(err)
 }
 

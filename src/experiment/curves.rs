@@ -70,19 +70,33 @@ pub fn ttf_point(
             steps.iter().map(|&s| s as f64 / full).collect()
         })
         .collect();
+    let metric = if strict { "strict_ttf" } else { "ttf" };
+    point(("ttf", metric), label, severity, &strata, mean_of_means, r)
+}
+
+/// The point of `label` at `severity` from its robots `strata` and `statistic`,
+/// with a bootstrap seeded by the point's own name.
+fn point(
+    (benchmark, metric): (&'static str, &'static str),
+    label: &str,
+    severity: usize,
+    strata: &[Vec<f64>],
+    statistic: impl Fn(&[Vec<f64>]) -> f64,
+    r: Resampling,
+) -> Option<CurvePoint> {
     if strata.is_empty() {
         return None;
     }
-    let name = format!("curve/ttf/{label}/{severity}/{strict}");
+    let name = format!("curve/{benchmark}/{metric}/{label}/{severity}");
     Some(CurvePoint {
-        benchmark: "ttf",
-        metric: if strict { "strict_ttf" } else { "ttf" },
+        benchmark,
+        metric,
         policy: label.to_string(),
         severity,
         units: strata.iter().map(Vec::len).sum(),
         estimate: bootstrap_strata(
-            &strata,
-            mean_of_means,
+            strata,
+            statistic,
             r.resamples,
             r.level,
             cell_seed(r.seed, &name),
@@ -110,24 +124,14 @@ pub fn platform_point(
                 .collect()
         })
         .collect();
-    if strata.is_empty() {
-        return None;
-    }
-    let name = format!("curve/platform/{label}/{severity}");
-    Some(CurvePoint {
-        benchmark: "platform",
-        metric: "success_pct",
-        policy: label.to_string(),
+    point(
+        ("platform", "success_pct"),
+        label,
         severity,
-        units: strata.iter().map(Vec::len).sum(),
-        estimate: bootstrap_strata(
-            &strata,
-            mean_of_means,
-            r.resamples,
-            r.level,
-            cell_seed(r.seed, &name),
-        ),
-    })
+        &strata,
+        mean_of_means,
+        r,
+    )
 }
 
 /// The 0.25 quantile of the returns of the race rows `policies` pooled (as the
@@ -145,25 +149,15 @@ pub fn race_point(
         .filter(|row| policies.contains(&row.name))
         .map(|row| row.returns.clone())
         .collect();
-    if strata.is_empty() {
-        return None;
-    }
     let q25_pooled = |s: &[Vec<f64>]| quantile(&s.concat(), 0.25);
-    let name = format!("curve/race/{label}/{severity}");
-    Some(CurvePoint {
-        benchmark: "race",
-        metric: "return_q25",
-        policy: label.to_string(),
+    point(
+        ("race", "return_q25"),
+        label,
         severity,
-        units: strata.iter().map(Vec::len).sum(),
-        estimate: bootstrap_strata(
-            &strata,
-            q25_pooled,
-            r.resamples,
-            r.level,
-            cell_seed(r.seed, &name),
-        ),
-    })
+        &strata,
+        q25_pooled,
+        r,
+    )
 }
 
 /// `benchmark,metric,policy,severity,value,lo,hi,units` rows.

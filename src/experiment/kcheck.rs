@@ -92,6 +92,14 @@ pub fn load_kth(
         .collect()
 }
 
+/// The scenario seeds of checkpoint `k`: the benchmark's, offset.
+fn checkpoint_seeds(seeds: &[u64], k: usize) -> Vec<u64> {
+    seeds
+        .iter()
+        .map(|s| s + k as u64 * CHECKPOINT_SEED_STRIDE)
+        .collect()
+}
+
 /// Robots per checkpoint so that K checkpoints see at least `repeats` in all.
 pub fn repeats_per_checkpoint(repeats: usize, k: usize) -> usize {
     repeats.div_ceil(k.max(1)).max(1)
@@ -112,7 +120,10 @@ impl CheckpointSpread {
         self.values.iter().cloned().fold(f64::INFINITY, f64::min)
     }
     pub fn max(&self) -> f64 {
-        self.values.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+        self.values
+            .iter()
+            .cloned()
+            .fold(f64::NEG_INFINITY, f64::max)
     }
 }
 
@@ -161,7 +172,8 @@ fn merge_ttf_cell(c: &mut TtfCell, more: &TtfCell) {
     c.walked_ratio = weighted(c.walked_ratio, more.walked_ratio);
     c.progress_ratio = weighted(c.progress_ratio, more.progress_ratio);
     c.steps_per_robot.extend(&more.steps_per_robot);
-    c.strict_steps_per_robot.extend(&more.strict_steps_per_robot);
+    c.strict_steps_per_robot
+        .extend(&more.strict_steps_per_robot);
     c.ttf_per_seed.extend(&more.ttf_per_seed);
     c.robots += more.robots;
     c.falls += more.falls;
@@ -242,15 +254,15 @@ pub fn evaluate_ttf_runs(
     let mut reports = Vec::new();
     for k in 0..c.last {
         let opts_k = TtfOptions {
-            seeds: opts
-                .seeds
-                .iter()
-                .map(|s| s + k as u64 * CHECKPOINT_SEED_STRIDE)
-                .collect(),
+            seeds: checkpoint_seeds(&opts.seeds, k),
             repeats: repeats_per_checkpoint(opts.repeats, c.last),
             ..opts.clone()
         };
-        reports.push(evaluate_ttf(&load_kth(spec, c, labels, k)?, &opts_k, &mut progress)?);
+        reports.push(evaluate_ttf(
+            &load_kth(spec, c, labels, k)?,
+            &opts_k,
+            &mut progress,
+        )?);
     }
     let (pooled, per) = pool_ttf(reports)?;
     Ok((pooled, spreads(spec, c, "ttf", per)?))
@@ -270,11 +282,7 @@ pub fn evaluate_platform_runs(
     let mut reports = Vec::new();
     for k in 0..c.last {
         let opts_k = PlatformOptions {
-            seeds: opts
-                .seeds
-                .iter()
-                .map(|s| s + k as u64 * CHECKPOINT_SEED_STRIDE)
-                .collect(),
+            seeds: checkpoint_seeds(&opts.seeds, k),
             repeats: repeats_per_checkpoint(opts.repeats, c.last),
             ..opts.clone()
         };

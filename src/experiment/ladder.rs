@@ -6,9 +6,9 @@
 use anyhow::Result;
 
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
+use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
-use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::{load_runs, seeds};
 use crate::eval::{
     evaluate_race, MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport,

@@ -25,9 +25,8 @@ use anyhow::{bail, Context, Result};
 use crate::config::TrainConfig;
 use crate::env::{build_scene, EnvConfig, VecEnv};
 use crate::eval::{
-    evaluate_race, evaluate_tracking, tracking_env,
-    with_randomization, ActionMode, GroundKind, Load, MetaConfig, NamedPolicy, PlatformOptions,
-    RaceOptions, ScenarioParams, TtfOptions,
+    evaluate_race, evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind,
+    Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
 };
 use crate::runner::{install_teacher, train, PhaseOneOnly, Progress, RunDir, TrainSummary, LATEST};
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
@@ -242,6 +241,9 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
         copy_atomic(&ckpt, &dst.join(LATEST))?;
         ship_files(&rd.root, &dst)?;
+        if let Some(c) = &spec.checkpoints {
+            ship_headline_checkpoints(spec, c, r, &rd, &dst)?;
+        }
         let p = &loaded.progress;
         let chosen = match selected_in(spec, r, &state) {
             Some((_, it)) => format!(
@@ -284,6 +286,32 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             p.iteration,
             dst.display()
         );
+    }
+    Ok(())
+}
+
+/// Actor-only copies of run `r`'s headline checkpoints (`[checkpoints]`) that its
+/// run directory holds, into `dst/checkpoints/`: what evaluating them needs.
+fn ship_headline_checkpoints(
+    spec: &ExperimentSpec,
+    c: &spec::CheckpointsSpec,
+    r: &spec::RunSpec,
+    rd: &RunDir,
+    dst: &Path,
+) -> Result<()> {
+    let target = run_state(spec, r)?.target;
+    let Ok(iterations) = kcheck::headline_iterations(c, target) else {
+        return Ok(());
+    };
+    for it in iterations {
+        let name = format!("model_{it:06}.safetensors");
+        let src = rd.root.join("checkpoints").join(&name);
+        if src.exists() {
+            crate::runner::policy_file::save_actor_only(
+                &src,
+                &dst.join("checkpoints").join(&name),
+            )?;
+        }
     }
     Ok(())
 }

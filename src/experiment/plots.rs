@@ -8,7 +8,7 @@ use plotters::prelude::*;
 use super::results::ExperimentResults;
 use super::stats::Estimate;
 
-const PALETTE: [RGBColor; 7] = [
+pub(super) const PALETTE: [RGBColor; 7] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),

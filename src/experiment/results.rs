@@ -389,7 +389,10 @@ impl ExperimentResults {
         }
         let _ = writeln!(s, "## From checkpoint to checkpoint\n");
         let _ = writeln!(s, "Every run's number in tables I and II is the mean over its last checkpoints (below, newest first), each judged on its share of the robots; this is how much a single checkpoint would have moved it. The race and the tracking judge each run's `[selection]` policy (a secondary view).\n");
-        let _ = writeln!(s, "| benchmark | run | checkpoints | per checkpoint | min - max |");
+        let _ = writeln!(
+            s,
+            "| benchmark | run | checkpoints | per checkpoint | min - max |"
+        );
         let _ = writeln!(s, "|---|---|---|---|---|");
         for c in &self.checkpoint_spread {
             let digits = if c.benchmark == "ttf" { 3 } else { 1 };
@@ -417,15 +420,22 @@ impl ExperimentResults {
         let mut rungs: Vec<usize> = self.curves.iter().map(|p| p.severity).collect();
         rungs.sort_unstable();
         rungs.dedup();
-        let _ = writeln!(s, "## Robustness curves
-");
+        let _ = writeln!(
+            s,
+            "## Robustness curves
+"
+        );
         let _ = writeln!(s, "Each method (seeds pooled with equal weight) on every rung of the severity ladder; rung 0 is the paper's protocol (the tables below), each higher rung harder on every axis. 95% bootstrap over robots in brackets; `figures/curve_<benchmark>.svg` draws them, `curves.csv` lists them.
 ");
         let _ = writeln!(s, "{}", ladder.markdown(&rungs));
         for (metric, title, digits) in [
             ("ttf", "Time to Fall, mean over table I's cells", 3),
             ("strict_ttf", "Time to Fall, strict fall definition", 3),
-            ("success_pct", "Platform success (%), the rung's heights pooled", 1),
+            (
+                "success_pct",
+                "Platform success (%), the rung's heights pooled",
+                1,
+            ),
             ("return_q25", "Race return, 0.25 quantile", 1),
         ] {
             let these: Vec<CurvePoint> = self
@@ -854,7 +864,11 @@ impl ExperimentResults {
             let mut csv = String::from("benchmark,run,iteration,value\n");
             for c in &self.checkpoint_spread {
                 for (it, v) in c.iterations.iter().zip(&c.values) {
-                    csv.push_str(&format!("{},{},{it},{v:.4}\n", c.benchmark, csv_field(&c.run)));
+                    csv.push_str(&format!(
+                        "{},{},{it},{v:.4}\n",
+                        c.benchmark,
+                        csv_field(&c.run)
+                    ));
                 }
             }
             files.push(("checkpoints.csv", csv));
@@ -882,8 +896,9 @@ impl ExperimentResults {
                 let path = entry?.path();
                 if path.is_file() {
                     let to = dir.join(sub).join(path.file_name().expect("a file name"));
-                    std::fs::rename(&path, &to)
-                        .with_context(|| format!("moving {} to {}", path.display(), to.display()))?;
+                    std::fs::rename(&path, &to).with_context(|| {
+                        format!("moving {} to {}", path.display(), to.display())
+                    })?;
                 }
             }
         }

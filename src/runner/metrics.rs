@@ -22,6 +22,8 @@ pub struct EpisodeStats {
     pub lin_tracking_score: f64,
     pub falls: usize,
     pub reward_terms: [f64; NUM_REWARD_TERMS],
+    /// Risk firings within 1 s before those episodes' falls, summed.
+    pub risk_fired_before_fall: [u64; NUM_RISK_TERMS],
 }
 
 impl EpisodeStats {
@@ -46,6 +48,13 @@ impl EpisodeStats {
             for (t, v) in s.reward_terms.iter_mut().zip(&e.reward_terms) {
                 *t += v / n;
             }
+            for (t, v) in s
+                .risk_fired_before_fall
+                .iter_mut()
+                .zip(&e.risk_fired_before_fall)
+            {
+                *t += *v as u64;
+            }
         }
         if steps > 0.0 && lin_weight_dt != 0.0 {
             s.lin_tracking_score = tracking_sum / lin_weight_dt / steps;
@@ -66,6 +75,7 @@ impl EpisodeStats {
             self.falls as f64,
         ];
         v.extend(self.reward_terms.iter().map(|t| n * t));
+        v.extend(self.risk_fired_before_fall.iter().map(|&c| c as f64));
         v
     }
 
@@ -82,6 +92,10 @@ impl EpisodeStats {
             for (t, x) in s.reward_terms.iter_mut().zip(&v[5..]) {
                 *t = x / v[0];
             }
+        }
+        let before = &v[(5 + NUM_REWARD_TERMS).min(v.len())..];
+        for (c, x) in s.risk_fired_before_fall.iter_mut().zip(before) {
+            *c = x.round() as u64;
         }
         if v[2] > 0.0 {
             s.lin_tracking_score = v[3] / v[2];
@@ -120,6 +134,8 @@ pub struct IterationRow<'a> {
     pub terrain_level: f64,
     pub risk_exceeded: &'a [u64; NUM_RISK_TERMS],
     pub risk_fired: &'a [u64; NUM_RISK_TERMS],
+    /// This iteration's firings within 1 s before a fall.
+    pub risk_fired_before_fall: &'a [u64; NUM_RISK_TERMS],
     pub instabilities: u64,
     /// Processes training the policy (MPI ranks; 1 alone).
     pub ranks: usize,
@@ -193,6 +209,11 @@ fn header() -> String {
     cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_exceeded_{n}")));
     cols.extend(RISK_TERM_NAMES.iter().map(|n| format!("risk_fired_{n}")));
     cols.extend(TIMING_COLUMNS.iter().map(|n| n.to_string()));
+    cols.extend(
+        RISK_TERM_NAMES
+            .iter()
+            .map(|n| format!("risk_fired_before_fall_{n}")),
+    );
     cols.join(",")
 }
 
@@ -331,6 +352,9 @@ impl MetricsCsv {
             row.push_str(&format!(",{v:.4}"));
         }
         row.push_str(&format!(",{}", r.ranks));
+        for v in r.risk_fired_before_fall {
+            row.push_str(&format!(",{v}"));
+        }
         writeln!(self.out, "{row}").context("writing metrics.csv")?;
         self.out.flush().context("writing metrics.csv")?;
         Ok(())

@@ -99,6 +99,32 @@ pub struct LoadedPolicy {
     /// The checkpoint holds everything a bit-identical resume needs (the
     /// learner's RNG and step counts, every rank's runner state).
     pub exact: bool,
+    /// The file holds the actor alone ([`save_actor_only`]): it acts, but its
+    /// critic and optimiser are fresh, so it is never resumed.
+    pub actor_only: bool,
+}
+
+/// Metadata `contents` of a file written by [`save_actor_only`].
+const ACTOR_ONLY: &str = "actor-only";
+
+/// Whether a tensor belongs to what acts: the actor's weights (with RMA's encoder
+/// or adaptation module) and the observation normaliser.
+fn acts(name: &str) -> bool {
+    name.starts_with("actor.") || name.starts_with("obs_norm.")
+}
+
+/// Writes the acting part of checkpoint `src` to `path` (config and progress
+/// kept, critic and optimiser left out, about a sixth of the size): enough to
+/// evaluate the policy, never to resume it.
+pub fn save_actor_only(src: &Path, path: &Path) -> Result<()> {
+    let ckpt = read_checkpoint(src)?;
+    let tensors: Vec<_> = ckpt.tensors.into_iter().filter(|t| acts(&t.name)).collect();
+    let mut meta = ckpt.metadata;
+    meta.insert("contents".into(), ACTOR_ONLY.into());
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    save_checkpoint_with(path, &tensors, &[], &meta)
 }
 
 fn meta_value<'a>(meta: &'a HashMap<String, String>, key: &str, path: &Path) -> Result<&'a str> {
@@ -240,7 +266,13 @@ fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
     if meta.get("latent_source").map(String::as_str) == Some("adaptation") {
         learner.set_latent_source(LatentSource::Adaptation);
     }
-    learner.load_state(&tensors).with_context(|| {
+    let actor_only = meta.get("contents").map(String::as_str) == Some(ACTOR_ONLY);
+    let loaded = if actor_only {
+        learner.load_state_keeping(&tensors, |name| !acts(name))
+    } else {
+        learner.load_state(&tensors)
+    };
+    loaded.with_context(|| {
         format!(
             "{} does not match the network in its own config",
             path.display()
@@ -257,7 +289,8 @@ fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
         learner,
         config,
         progress,
-        exact,
+        exact: exact && !actor_only,
+        actor_only,
     })
 }
 

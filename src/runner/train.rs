@@ -119,7 +119,18 @@ impl RunDir {
 
     fn find_resume_point(&self) -> Result<Found> {
         let latest = self.latest();
-        let latest_err = match load_policy(&latest) {
+        let resumable = |path: &Path| {
+            load_policy(path).and_then(|loaded| {
+                if loaded.actor_only {
+                    anyhow::bail!(
+                        "{} holds the actor alone (an evaluation copy): it cannot be resumed",
+                        path.display()
+                    )
+                }
+                Ok(loaded)
+            })
+        };
+        let latest_err = match resumable(&latest) {
             Ok(loaded) => {
                 return Ok(Found {
                     path: latest,
@@ -131,7 +142,7 @@ impl RunDir {
         };
         let mut passed_over = vec![(latest, format!("{latest_err:#}"))];
         for path in self.numbered_checkpoints() {
-            match load_policy(&path) {
+            match resumable(&path) {
                 Ok(loaded) => {
                     return Ok(Found {
                         path,
@@ -593,6 +604,7 @@ pub fn train_in(
         progress.total_env_steps += iteration_env_steps;
         progress.wall_s = wall_start.elapsed().as_secs_f64();
         progress.rng_word_pos = rng.get_word_pos();
+        let fired_before_fall = job.episodes.risk_fired_before_fall;
         if job.episodes.episodes > 0 {
             last_stats = job.episodes;
         }
@@ -609,6 +621,7 @@ pub fn train_in(
             terrain_level: job.terrain_level,
             risk_exceeded: &risk_exceeded,
             risk_fired: &risk_fired,
+            risk_fired_before_fall: &fired_before_fall,
             instabilities: all_instabilities,
             ranks,
         };
