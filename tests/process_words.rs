@@ -51,7 +51,7 @@ fn offending(line: &str) -> Option<&'static str> {
     }
     let tracker = concat!("iss", "ue");
     for i in occurrences(&low, tracker) {
-        let mut rest = low[i + tracker.len()..].as_bytes();
+        let mut rest = &low.as_bytes()[i + tracker.len()..];
         if rest.first() == Some(&b' ') {
             rest = &rest[1..];
         }

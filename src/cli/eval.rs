@@ -727,7 +727,13 @@ fn platform(a: &PlatformArgs) -> Result<()> {
         let mut points = Vec::new();
         for p in &policies {
             let one = [p.name.clone()];
-            points.extend(platform_point(&report, &one, &p.name, s, Resampling::default()));
+            points.extend(platform_point(
+                &report,
+                &one,
+                &p.name,
+                s,
+                Resampling::default(),
+            ));
         }
         Ok((report.markdown(), report.csv(), report.json(), points))
     })
@@ -823,7 +829,13 @@ fn race(a: &RaceArgs) -> Result<()> {
         let mut points = Vec::new();
         for row in &report.rows {
             let one = [row.name.clone()];
-            points.extend(race_point(&report, &one, &row.name, s, Resampling::default()));
+            points.extend(race_point(
+                &report,
+                &one,
+                &row.name,
+                s,
+                Resampling::default(),
+            ));
         }
         Ok((report.markdown(), report.csv(), report.json(), points))
     })

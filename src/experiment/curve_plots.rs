@@ -12,7 +12,6 @@ use super::curves::CurvePoint;
 use super::plots::PALETTE;
 use super::results::ExperimentResults;
 
-
 fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing a curve figure: {e}")
 }

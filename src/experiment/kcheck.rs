@@ -127,14 +127,17 @@ impl CheckpointSpread {
     }
 }
 
+/// Each run's number at each checkpoint, by run label.
+pub type PerCheckpoint = Vec<(String, Vec<f64>)>;
+
 /// The K checkpoints' TTF reports pooled into one (robots concatenated per cell,
 /// checkpoint order), and each run's TTF (mean over its cells) per checkpoint.
-pub fn pool_ttf(reports: Vec<TtfReport>) -> Result<(TtfReport, Vec<(String, Vec<f64>)>)> {
+pub fn pool_ttf(reports: Vec<TtfReport>) -> Result<(TtfReport, PerCheckpoint)> {
     let mut it = reports.into_iter();
     let Some(mut pooled) = it.next() else {
         bail!("no checkpoint evaluated");
     };
-    let mut per_checkpoint: Vec<(String, Vec<f64>)> = pooled
+    let mut per_checkpoint: PerCheckpoint = pooled
         .policies
         .iter()
         .map(|p| (p.clone(), vec![run_ttf(&pooled, p)]))
@@ -187,9 +190,7 @@ fn merge_ttf_cell(c: &mut TtfCell, more: &TtfCell) {
 
 /// The K checkpoints' platform reports pooled into one, and each run's success
 /// (%) over the heights per checkpoint.
-pub fn pool_platform(
-    reports: Vec<PlatformReport>,
-) -> Result<(PlatformReport, Vec<(String, Vec<f64>)>)> {
+pub fn pool_platform(reports: Vec<PlatformReport>) -> Result<(PlatformReport, PerCheckpoint)> {
     let mut it = reports.into_iter();
     let Some(mut pooled) = it.next() else {
         bail!("no checkpoint evaluated");
@@ -204,7 +205,7 @@ pub fn pool_platform(
         mean(&all)
     };
     let names: Vec<String> = pooled.cells.iter().map(|c| c.policy.clone()).collect();
-    let mut per_checkpoint: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut per_checkpoint: PerCheckpoint = Vec::new();
     for n in names {
         if per_checkpoint.iter().all(|(p, _)| *p != n) {
             per_checkpoint.push((n.clone(), vec![success(&pooled, &n)]));
@@ -300,7 +301,7 @@ fn spreads(
     spec: &ExperimentSpec,
     c: &CheckpointsSpec,
     benchmark: &'static str,
-    per: Vec<(String, Vec<f64>)>,
+    per: PerCheckpoint,
 ) -> Result<Vec<CheckpointSpread>> {
     per.into_iter()
         .map(|(run, values)| {
