@@ -676,10 +676,12 @@ pub fn calibrate_threshold(m: &MetaSpec, risky: &NamedPolicy, threads: usize) ->
     Ok(t as f32)
 }
 
-/// Runs every evaluation of the experiment on the runs' latest checkpoints.
-pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
-    let threads = crate::config::worker_threads(spec.threads);
-    let start = Instant::now();
+/// The runs to evaluate with their states; an unfinished one is refused unless
+/// `opts.allow_unfinished`.
+fn runs_to_evaluate(
+    spec: &ExperimentSpec,
+    opts: &ExperimentOptions,
+) -> Result<Vec<(spec::RunSpec, RunState)>> {
     let mut runs = Vec::new();
     for r in &spec.runs {
         let state = run_state(spec, r)?;
@@ -693,36 +695,33 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         }
         runs.push((r.clone(), state));
     }
-    // with --allow-unfinished, runs without any checkpoint are left out
+    Ok(runs)
+}
+
+/// Labels of the runs with a checkpoint (with --allow-unfinished, the others are left out).
+fn runs_with_checkpoints(
+    spec: &ExperimentSpec,
+    runs: &[(spec::RunSpec, RunState)],
+) -> Result<Vec<String>> {
     let mut available = Vec::new();
-    for (r, _) in &runs {
+    for (r, _) in runs {
         if newest_checkpoint(spec, r)?.is_some() {
             available.push(r.label.clone());
         } else {
             eprintln!("  {} has no checkpoint yet: left out", r.label);
         }
     }
-    let have = |labels: &[String]| -> Vec<String> {
-        labels
-            .iter()
-            .filter(|l| available.contains(l))
-            .cloned()
-            .collect()
-    };
-    let stages = if spec.curves.is_some() { 6 } else { 5 };
-    let stage = |k: usize, what: &str| {
-        eprintln!(
-            "[eval {k}/{stages}] {what} ({:.1} min so far)",
-            start.elapsed().as_secs_f64() / 60.0
-        )
-    };
+    Ok(available)
+}
 
-    if spec.selection.is_some() {
-        eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
-        choose_final_policies(spec, threads)?;
-        warn_unchosen_teachers(spec, &runs)?;
-    }
-    stage(1, "velocity tracking of every policy");
+/// Every available run's final policy tracked under its own randomisation and
+/// each common one.
+fn track_all(
+    spec: &ExperimentSpec,
+    runs: &[(spec::RunSpec, RunState)],
+    available: &[String],
+    threads: usize,
+) -> Result<Vec<RunTracking>> {
     let common = spec
         .tracking
         .randomization_from
@@ -755,9 +754,11 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             policy_iteration,
         });
     }
+    Ok(tracking)
+}
 
-    stage(2, "table I: time to fall");
-    let ttf_opts = TtfOptions {
+fn ttf_options(spec: &ExperimentSpec, threads: usize) -> Result<TtfOptions> {
+    Ok(TtfOptions {
         seeds: seeds(spec.ttf.first_seed, spec.ttf.seeds),
         repeats: spec.ttf.repeats,
         threads,
@@ -770,28 +771,11 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         terrains: vec![GroundKind::Flat, GroundKind::Rough],
         pushes: vec![false, true],
         params: ScenarioParams::default(),
-    };
-    let ttf_methods = have(&spec.ttf.methods);
-    let mut spread = Vec::new();
-    let ttf = if ttf_methods.is_empty() {
-        None
-    } else {
-        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, |c| {
-            eprintln!(
-                "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
-                c.load.name(),
-                c.terrain,
-                c.push,
-                c.policy,
-                c.ttf
-            )
-        })?;
-        spread.extend(s);
-        Some(report)
-    };
+    })
+}
 
-    stage(3, "table II: platform drops");
-    let platform_opts = PlatformOptions {
+fn platform_options(spec: &ExperimentSpec, threads: usize) -> PlatformOptions {
+    PlatformOptions {
         heights_m: spec.platform.heights_m.clone(),
         seeds: seeds(spec.platform.first_seed, spec.platform.seeds),
         repeats: spec.platform.repeats,
@@ -799,26 +783,26 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         settle_s: 2.0,
         load: Load::None,
         params: ScenarioParams::default(),
-    };
-    let platform_methods = have(&spec.platform.methods);
-    let platform = if platform_methods.is_empty() {
-        None
-    } else {
-        let (report, s) =
-            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, |c| {
-                eprintln!(
-                    "  {:.2} m {:<14} success {:.1}%",
-                    c.height_m, c.policy, c.success_pct
-                )
-            })?;
-        spread.extend(s);
-        Some(report)
-    };
+    }
+}
 
-    stage(
-        4,
-        "meta controller thresholds (rule of the experiment file)",
-    );
+fn race_options(spec: &ExperimentSpec, threads: usize) -> RaceOptions {
+    RaceOptions {
+        agents: spec.race.agents,
+        episodes: spec.race.episodes,
+        threads,
+        seed: spec.race.seed,
+        course_seed: spec.race.course_seed,
+        params: ScenarioParams::default(),
+    }
+}
+
+/// Each meta controller whose two runs exist, its threshold fixed by the rule.
+fn meta_configs(
+    spec: &ExperimentSpec,
+    available: &[String],
+    threads: usize,
+) -> Result<Vec<MetaConfig>> {
     let mut metas = Vec::new();
     for m in &spec.meta {
         if !(available.contains(&m.risky) && available.contains(&m.safe)) {
@@ -843,67 +827,124 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             min_safe_steps: m.min_safe_steps,
         });
     }
+    Ok(metas)
+}
 
-    stage(5, "race track");
-    let mut race_labels = have(&spec.race.methods);
-    for m in &metas {
+/// The race's runs: its methods, then the meta controllers' runs not among them.
+fn race_runs(methods: Vec<String>, metas: &[MetaConfig]) -> Vec<String> {
+    let mut labels = methods;
+    for m in metas {
         for l in [&m.risky, &m.safe] {
-            if !race_labels.contains(l) {
-                race_labels.push(l.clone());
+            if !labels.contains(l) {
+                labels.push(l.clone());
             }
         }
     }
-    let race_opts = RaceOptions {
-        agents: spec.race.agents,
-        episodes: spec.race.episodes,
-        threads,
-        seed: spec.race.seed,
-        course_seed: spec.race.course_seed,
-        params: ScenarioParams::default(),
+    labels
+}
+
+/// Runs every evaluation of the experiment on the runs' latest checkpoints.
+pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
+    let threads = crate::config::worker_threads(spec.threads);
+    let start = Instant::now();
+    let runs = runs_to_evaluate(spec, opts)?;
+    let available = runs_with_checkpoints(spec, &runs)?;
+    let have = |labels: &[String]| -> Vec<String> {
+        let mut out = labels.to_vec();
+        out.retain(|l| available.contains(l));
+        out
     };
+    let stages = if spec.curves.is_some() { 6 } else { 5 };
+    let stage = |k: usize, what: &str| {
+        eprintln!(
+            "[eval {k}/{stages}] {what} ({:.1} min so far)",
+            start.elapsed().as_secs_f64() / 60.0
+        )
+    };
+    if spec.selection.is_some() {
+        eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
+        choose_final_policies(spec, threads)?;
+        warn_unchosen_teachers(spec, &runs)?;
+    }
+    stage(1, "velocity tracking of every policy");
+    let tracking = track_all(spec, &runs, &available, threads)?;
+
+    stage(2, "table I: time to fall");
+    let ttf_opts = ttf_options(spec, threads)?;
+    let ttf_methods = have(&spec.ttf.methods);
+    let mut spread = Vec::new();
+    let ttf = if ttf_methods.is_empty() {
+        None
+    } else {
+        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, |c| {
+            eprintln!(
+                "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
+                c.load.name(),
+                c.terrain,
+                c.push,
+                c.policy,
+                c.ttf
+            )
+        })?;
+        spread.extend(s);
+        Some(report)
+    };
+
+    stage(3, "table II: platform drops");
+    let platform_opts = platform_options(spec, threads);
+    let platform_methods = have(&spec.platform.methods);
+    let platform = if platform_methods.is_empty() {
+        None
+    } else {
+        let (report, s) =
+            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, |c| {
+                eprintln!(
+                    "  {:.2} m {:<14} success {:.1}%",
+                    c.height_m, c.policy, c.success_pct
+                )
+            })?;
+        spread.extend(s);
+        Some(report)
+    };
+
+    stage(
+        4,
+        "meta controller thresholds (rule of the experiment file)",
+    );
+    let metas = meta_configs(spec, &available, threads)?;
+
+    stage(5, "race track");
+    let race_labels = race_runs(have(&spec.race.methods), &metas);
+    let race_opts = race_options(spec, threads);
     let race = if race_labels.is_empty() {
         None
     } else {
-        Some(evaluate_race(
-            &load_runs(spec, &race_labels)?,
-            &metas,
-            &race_opts,
-            |r| {
-                eprintln!(
-                    "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
-                    r.name, r.q25, r.q50, r.q75
-                )
-            },
-        )?)
+        let policies = load_runs(spec, &race_labels)?;
+        Some(evaluate_race(&policies, &metas, &race_opts, |r| {
+            eprintln!(
+                "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+                r.name, r.q25, r.q50, r.q75
+            )
+        })?)
     };
     let mut curves = Vec::new();
     if let Some(c) = &spec.curves {
-        eprintln!(
-            "[eval 6/{stages}] robustness curves over the severity ladder ({:.1} min so far)",
-            start.elapsed().as_secs_f64() / 60.0
-        );
+        stage(6, "robustness curves over the severity ladder");
         let reports = ladder::RungReports {
             ttf: ttf.as_ref(),
             platform: platform.as_ref(),
             race: race.as_ref(),
         };
         let tables = ladder::TableRuns {
-            ttf: (&ttf_opts, ttf_methods.clone()),
-            platform: (&platform_opts, platform_methods.clone()),
-            race: (&race_opts, race_labels.clone()),
+            ttf: (&ttf_opts, ttf_methods),
+            platform: (&platform_opts, platform_methods),
+            race: (&race_opts, race_labels),
             metas: &metas,
         };
         curves = ladder::evaluate_curves(spec, c, &reports, &tables)?;
     }
-    let mut results = ExperimentResults::new(
-        spec,
-        runs,
-        tracking,
-        ttf,
-        platform,
-        race,
-        start.elapsed().as_secs_f64(),
-    );
+    let wall_s = start.elapsed().as_secs_f64();
+    let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
     results.set_curves(spec, curves)?;
     results.checkpoint_spread = spread;
     Ok(results)
