@@ -7,7 +7,6 @@ use anyhow::{Context, Result};
 use clap::Args;
 
 use crate::config::{worker_threads, TrainConfig};
-use crate::eval::report::write_file_atomic;
 use crate::eval::risk_calibration::{calibrate_risk, CALIBRATED_TERMS};
 use crate::runner::load_policy;
 
@@ -109,7 +108,7 @@ pub fn run(a: &CalibrateRiskArgs) -> Result<()> {
     );
     TrainConfig::from_toml_str(&out_text)
         .context("the calibrated config does not parse (a bug: please report it)")?;
-    write_file_atomic(&a.out, out_text.as_bytes())?;
+    crate::fsio::write_atomic(&a.out, out_text.as_bytes())?;
     println!("wrote {}", a.out.display());
     Ok(())
 }

@@ -386,7 +386,7 @@ fn tracking_curve(a: &TrackingArgs, dir: &Path) -> Result<()> {
         ));
     }
     if let Some(path) = &a.curve_csv {
-        std::fs::write(path, csv).with_context(|| format!("writing {}", path.display()))?;
+        crate::fsio::write_atomic(path, csv.as_bytes())?;
         println!("curve -> {}", path.display());
     }
     Ok(())
@@ -443,7 +443,7 @@ fn tracking_one(a: &TrackingArgs, checkpoint: &Path) -> Result<()> {
             text.push_str(&f.csv_row());
             text.push('\n');
         }
-        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        crate::fsio::write_atomic(path, text.as_bytes())?;
         println!(
             "falls                {} rows -> {}",
             falls.len(),

@@ -41,19 +41,6 @@ pub fn csv_line(fields: &[String]) -> String {
 }
 
 /// Writes `<dir>/<stem>.md`, `.csv` and `.json`; returns their paths.
-/// Writes `bytes` to `path` through a temporary file in the same folder and a
-/// rename: a reader sees the old file or the new one, never a part.
-pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let name = path
-        .file_name()
-        .with_context(|| format!("{} is not a file path", path.display()))?
-        .to_string_lossy();
-    let tmp = path.with_file_name(format!(".{name}.rall-tmp"));
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
-}
-
 pub fn write_outputs(
     dir: &Path,
     stem: &str,
@@ -69,7 +56,7 @@ pub fn write_outputs(
         ("json", serde_json::to_string_pretty(json)? + "\n"),
     ] {
         let path = dir.join(format!("{stem}.{ext}"));
-        write_file_atomic(&path, text.as_bytes())?;
+        crate::fsio::write_atomic(&path, text.as_bytes())?;
         out.push(path);
     }
     Ok(out)

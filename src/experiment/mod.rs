@@ -176,9 +176,7 @@ fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
 
 /// Writes `text` to `path` through a temp file and a rename.
 fn write_atomic(path: &Path, text: &str) -> Result<()> {
-    let tmp = path.with_extension("write.tmp");
-    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    crate::fsio::write_atomic(path, text.as_bytes())
 }
 
 /// Whether a run directory holds checkpoints of its own (else its shipped copy
@@ -278,8 +276,7 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             file = file.display(),
             name = spec.run_dir_name(r),
         );
-        std::fs::write(dst.join("README.md"), text)
-            .with_context(|| format!("writing {}", dst.join("README.md").display()))?;
+        crate::fsio::write_atomic(&dst.join("README.md"), text.as_bytes())?;
         eprintln!(
             "shipped {} (iteration {}) to {}",
             r.label,
