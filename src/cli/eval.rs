@@ -573,13 +573,7 @@ fn ttf(a: &TtfArgs) -> Result<()> {
     };
     let Some((ladder, rungs)) = a.common.rungs()? else {
         let report = run(&opts)?;
-        return finish(
-            &a.common.out,
-            "ttf",
-            &report.markdown(),
-            &report.csv(),
-            &report.json(),
-        );
+        return finish_report(&a.common.out, "ttf", &report);
     };
     run_ladder(&a.common.out, "ttf", &ladder, &rungs, |s, rung| {
         let report = run(&TtfOptions {
@@ -595,6 +589,38 @@ fn ttf(a: &TtfArgs) -> Result<()> {
         }
         Ok((report.markdown(), report.csv(), report.json(), points))
     })
+}
+
+/// A benchmark's report as the three files `finish` writes.
+trait Tables {
+    fn markdown(&self) -> String;
+    fn csv(&self) -> String;
+    fn json(&self) -> serde_json::Value;
+}
+
+macro_rules! tables {
+    ($($t:ty),*) => {$(
+        impl Tables for $t {
+            fn markdown(&self) -> String {
+                <$t>::markdown(self)
+            }
+            fn csv(&self) -> String {
+                <$t>::csv(self)
+            }
+            fn json(&self) -> serde_json::Value {
+                <$t>::json(self)
+            }
+        }
+    )*};
+}
+tables!(
+    crate::eval::TtfReport,
+    crate::eval::PlatformReport,
+    crate::eval::RaceReport
+);
+
+fn finish_report(out: &Path, stem: &str, report: &impl Tables) -> Result<()> {
+    finish(out, stem, &report.markdown(), &report.csv(), &report.json())
 }
 
 /// One rung's table (markdown, CSV, JSON) and curve points.
@@ -710,13 +736,7 @@ fn platform(a: &PlatformArgs) -> Result<()> {
     };
     let Some((ladder, rungs)) = a.common.rungs()? else {
         let report = run(&opts)?;
-        return finish(
-            &a.common.out,
-            "platform",
-            &report.markdown(),
-            &report.csv(),
-            &report.json(),
-        );
+        return finish_report(&a.common.out, "platform", &report);
     };
     run_ladder(&a.common.out, "platform", &ladder, &rungs, |s, rung| {
         let report = run(&PlatformOptions {
@@ -813,13 +833,7 @@ fn race(a: &RaceArgs) -> Result<()> {
     };
     let Some((ladder, rungs)) = a.common.rungs()? else {
         let report = run(&opts)?;
-        return finish(
-            &a.common.out,
-            "race",
-            &report.markdown(),
-            &report.csv(),
-            &report.json(),
-        );
+        return finish_report(&a.common.out, "race", &report);
     };
     run_ladder(&a.common.out, "race", &ladder, &rungs, |s, rung| {
         let report = run(&RaceOptions {
