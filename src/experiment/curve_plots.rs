@@ -119,11 +119,13 @@ fn curve_figure(
             .iter()
             .find(|(b, mm, _)| b == benchmark && mm == m);
         if let Some((_, _, v)) = paper {
+            // the method's colour, a black core: whose number it is, and that it is the paper's
+            let tick = vec![(dx - 0.12, *v), (dx + 0.12, *v)];
             chart
-                .draw_series(std::iter::once(PathElement::new(
-                    vec![(dx - 0.12, *v), (dx + 0.12, *v)],
-                    BLACK.stroke_width(3),
-                )))
+                .draw_series([
+                    PathElement::new(tick.clone(), color.stroke_width(6)),
+                    PathElement::new(tick, BLACK.stroke_width(2)),
+                ])
                 .map_err(err)?;
         }
     }
@@ -162,11 +164,20 @@ where
     if with_paper {
         area.draw(&PathElement::new(
             vec![(14, y), (36, y)],
-            BLACK.stroke_width(3),
+            BLACK.mix(0.35).stroke_width(6),
         ))
         .map_err(err)?;
-        area.draw(&Text::new("the paper, rung 0", (48, y - 8), style.clone()))
-            .map_err(err)?;
+        area.draw(&PathElement::new(
+            vec![(14, y), (36, y)],
+            BLACK.stroke_width(2),
+        ))
+        .map_err(err)?;
+        area.draw(&Text::new(
+            "the paper's number at rung 0 (method's colour)",
+            (48, y - 8),
+            style.clone(),
+        ))
+        .map_err(err)?;
     }
     area.draw(&Text::new(
         "whiskers: 95% bootstrap over robots",
