@@ -6,6 +6,15 @@
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
 //! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
+//! - [`memory`]: the process's allocator (large buffers on transparent huge pages).
+//! - `env`: one robot's task (observation groups, reward, risk, commands, terrain and its
+//!   curriculum, randomisation) and `VecEnv`, N of them on a rayon pool.
+//! - `runner`: the training loop, run directories, checkpoints on disk, metrics, MPI.
+//! - `eval`: tracking, the robustness scenarios and benchmarks (TTF, platform, race, the
+//!   meta controller), the severity ladder, risk calibration.
+//! - `experiment`: `rall experiment` (runs, selection, K checkpoints, tables, curves, figures).
+//! - `export`, `viz`, `config`, `cli`: ONNX and its sidecar; rerun recordings; the run
+//!   config; the subcommands. (These need the default `sim` feature.)
 //!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
 //! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
