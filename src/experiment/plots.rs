@@ -22,17 +22,68 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing a figure: {e}")
 }
 
+/// What one bar panel draws for (group, series): the estimate, each training
+/// seed's value, and the paper's number.
+struct BarData<'a> {
+    value: &'a dyn Fn(usize, usize) -> Option<Estimate>,
+    seeds: &'a dyn Fn(usize, usize) -> Vec<f64>,
+    paper: &'a dyn Fn(usize, usize) -> Option<f64>,
+}
+
+/// Width of the legend column right of the panels (px).
+const LEGEND_W: u32 = 210;
+
+/// The legend, in its own column so it covers no bar: a swatch per series, the
+/// seed dots, the whiskers and (when drawn) the paper's tick.
+fn bar_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+    series: &[String],
+    with_paper: bool,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let style = ("sans-serif", 13).into_font().color(&BLACK);
+    let mut y = 50;
+    for (i, name) in series.iter().enumerate() {
+        let color = PALETTE[i % PALETTE.len()];
+        area.draw(&Rectangle::new([(10, y - 6), (24, y + 6)], color.filled()))
+            .map_err(err)?;
+        area.draw(&Text::new(name.clone(), (32, y - 7), style.clone()))
+            .map_err(err)?;
+        y += 22;
+    }
+    y += 8;
+    area.draw(&Circle::new((17, y), 3, BLACK.filled()))
+        .map_err(err)?;
+    area.draw(&Text::new("a training seed", (32, y - 7), style.clone()))
+        .map_err(err)?;
+    y += 22;
+    area.draw(&PathElement::new(vec![(17, y - 7), (17, y + 7)], BLACK))
+        .map_err(err)?;
+    area.draw(&Text::new("95% interval", (32, y - 7), style.clone()))
+        .map_err(err)?;
+    if with_paper {
+        y += 22;
+        area.draw(&PathElement::new(
+            vec![(8, y), (26, y)],
+            BLACK.stroke_width(3),
+        ))
+        .map_err(err)?;
+        area.draw(&Text::new("the paper's number", (32, y - 7), style))
+            .map_err(err)?;
+    }
+    Ok(())
+}
+
 /// One panel of grouped bars: `groups` on x, one bar per series, whiskers at [lo, hi],
-/// and a dot at each of `seeds(group, series)` (each training seed's own value).
-#[allow(clippy::too_many_arguments)]
+/// a dot at each training seed's own value, a black tick at the paper's number.
 fn bars<DB: DrawingBackend>(
     area: &DrawingArea<DB, plotters::coord::Shift>,
-    title: &str,
-    y_label: &str,
+    (title, y_label): (&str, &str),
     groups: &[String],
     series: &[String],
-    value: &dyn Fn(usize, usize) -> Option<Estimate>,
-    seeds: &dyn Fn(usize, usize) -> Vec<f64>,
+    data: &BarData,
     y_max: f64,
 ) -> Result<()>
 where
@@ -50,6 +101,8 @@ where
     chart
         .configure_mesh()
         .disable_x_mesh()
+        .light_line_style(WHITE)
+        .bold_line_style(BLACK.mix(0.12))
         .x_labels(groups.len() * 2 + 1)
         .x_label_formatter(&move |x| {
             let k = x.floor() as usize;
@@ -64,13 +117,14 @@ where
         .map_err(err)?;
     let m = series.len().max(1) as f64;
     let width = 0.8 / m;
-    for (si, name) in series.iter().enumerate() {
+    for si in 0..series.len() {
         let color = PALETTE[si % PALETTE.len()];
         let mut rects = Vec::new();
         let mut whiskers = Vec::new();
         let mut dots = Vec::new();
+        let mut ticks = Vec::new();
         for gi in 0..groups.len() {
-            if let Some(e) = value(gi, si) {
+            if let Some(e) = (data.value)(gi, si) {
                 let x0 = gi as f64 + 0.1 + si as f64 * width;
                 rects.push(Rectangle::new(
                     [(x0, 0.0), (x0 + width * 0.9, e.value)],
@@ -81,7 +135,13 @@ where
                     vec![(xc, e.lo), (xc, e.hi)],
                     BLACK.stroke_width(1),
                 ));
-                let per_seed = seeds(gi, si);
+                if let Some(p) = (data.paper)(gi, si) {
+                    ticks.push(PathElement::new(
+                        vec![(x0 - width * 0.05, p), (x0 + width * 0.95, p)],
+                        BLACK.stroke_width(3),
+                    ));
+                }
+                let per_seed = (data.seeds)(gi, si);
                 if per_seed.len() > 1 {
                     for (k, v) in per_seed.iter().enumerate() {
                         let dx = width * 0.9 * (k as f64 + 1.0) / (per_seed.len() as f64 + 1.0);
@@ -90,21 +150,11 @@ where
                 }
             }
         }
-        chart
-            .draw_series(rects)
-            .map_err(err)?
-            .label(name.clone())
-            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
+        chart.draw_series(rects).map_err(err)?;
         chart.draw_series(whiskers).map_err(err)?;
         chart.draw_series(dots).map_err(err)?;
+        chart.draw_series(ticks).map_err(err)?;
     }
-    chart
-        .configure_series_labels()
-        .border_style(BLACK)
-        .background_style(WHITE.mix(0.8))
-        .position(SeriesLabelPosition::UpperRight)
-        .draw()
-        .map_err(err)?;
     Ok(())
 }
 
@@ -122,9 +172,12 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
         .iter()
         .map(|(t, p)| format!("{t}{}", if *p { "+push" } else { "" }))
         .collect();
-    let root = SVGBackend::new(path, (420 * loads.len().max(1) as u32, 380)).into_drawing_area();
+    let panels_w = 420 * loads.len().max(1) as u32;
+    let root = SVGBackend::new(path, (panels_w + LEGEND_W, 380)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    let panels = root.split_evenly((1, loads.len().max(1)));
+    let (left, legend) = root.split_horizontally(panels_w);
+    let panels = left.split_evenly((1, loads.len().max(1)));
+    let mut any_paper = false;
     for (load, area) in loads.iter().zip(panels.iter()) {
         let cell = |g: usize, s: usize| {
             rows.iter().find(|c| {
@@ -134,17 +187,35 @@ fn ttf_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
                     && c.push == cols[g].1
             })
         };
+        // the paper's number is kept with the run its method is named after
+        let paper = |g: usize, s: usize| {
+            let label = &cell(g, s)?.method.label;
+            r.ttf
+                .iter()
+                .find(|t| {
+                    &t.method == label
+                        && &t.load == load
+                        && t.terrain == cols[g].0
+                        && t.push == cols[g].1
+                })
+                .and_then(|t| t.paper)
+        };
+        any_paper |= (0..groups.len()).any(|g| (0..methods.len()).any(|s| paper(g, s).is_some()));
+        let data = BarData {
+            value: &|g, s| cell(g, s).map(|c| c.ttf),
+            seeds: &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
+            paper: &paper,
+        };
         bars(
             area,
-            &format!("TTF, {load}"),
-            "time to fall",
+            (&format!("TTF, {load}"), "time to fall"),
             &groups,
             &methods,
-            &|g, s| cell(g, s).map(|c| c.ttf),
-            &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
+            &data,
             1.05,
         )?;
     }
+    bar_legend(&legend, &methods, any_paper)?;
     root.present().map_err(err)
 }
 
@@ -152,23 +223,36 @@ fn platform_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     let rows = &r.methods.platform;
     let heights: Vec<String> = unique(rows.iter().map(|c| format!("{:.2} m", c.height_m)));
     let methods: Vec<String> = unique(rows.iter().map(|c| c.method.display()));
-    let root = SVGBackend::new(path, (640, 400)).into_drawing_area();
+    let root = SVGBackend::new(path, (640 + LEGEND_W, 400)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
+    let (left, legend) = root.split_horizontally(640);
     let cell = |g: usize, s: usize| {
         rows.iter().find(|c| {
             format!("{:.2} m", c.height_m) == heights[g] && c.method.display() == methods[s]
         })
     };
+    let paper = |g: usize, s: usize| {
+        let c = cell(g, s)?;
+        r.platform
+            .iter()
+            .find(|p| p.method == c.method.label && p.height_m == c.height_m)
+            .and_then(|p| p.paper)
+    };
+    let any_paper = (0..heights.len()).any(|g| (0..methods.len()).any(|s| paper(g, s).is_some()));
+    let data = BarData {
+        value: &|g, s| cell(g, s).map(|c| c.success_pct),
+        seeds: &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
+        paper: &paper,
+    };
     bars(
-        &root,
-        "Walking off a platform",
-        "success %",
+        &left,
+        ("Walking off a platform", "success %"),
         &heights,
         &methods,
-        &|g, s| cell(g, s).map(|c| c.success_pct),
-        &|g, s| cell(g, s).map_or(Vec::new(), |c| c.per_seed.clone()),
+        &data,
         105.0,
     )?;
+    bar_legend(&legend, &methods, any_paper)?;
     root.present().map_err(err)
 }
 
@@ -184,21 +268,26 @@ fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
                 .chain(c.per_seed.iter().flatten().copied())
         })
         .fold(1e-6, f64::max);
-    let root = SVGBackend::new(path, (720, 420)).into_drawing_area();
+    let root = SVGBackend::new(path, (720 + LEGEND_W, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
-    bars(
-        &root,
-        "Race track returns",
-        "episode return",
-        &groups,
-        &methods,
-        &|g, s| rows.get(s).map(|c| [c.q25, c.q50, c.q75][g]),
-        &|g, s| {
+    let (left, legend) = root.split_horizontally(720);
+    let data = BarData {
+        value: &|g, s| rows.get(s).map(|c| [c.q25, c.q50, c.q75][g]),
+        seeds: &|g, s| {
             rows.get(s)
                 .map_or(Vec::new(), |c| c.per_seed.iter().map(|q| q[g]).collect())
         },
+        paper: &|_, _| None,
+    };
+    bars(
+        &left,
+        ("Race track returns", "episode return"),
+        &groups,
+        &methods,
+        &data,
         highest * 1.15,
     )?;
+    bar_legend(&legend, &methods, false)?;
     root.present().map_err(err)
 }
 
