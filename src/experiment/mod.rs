@@ -239,9 +239,12 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
         copy_atomic(&ckpt, &dst.join(LATEST))?;
         ship_files(&rd.root, &dst)?;
-        if let Some(c) = &spec.checkpoints {
-            ship_headline_checkpoints(spec, c, r, &rd, &dst)?;
-        }
+        // kept whether or not `[checkpoints]` is on yet, so that it can be turned on later
+        let keep = spec.checkpoints.clone().unwrap_or(spec::CheckpointsSpec {
+            last: 5,
+            every: 100,
+        });
+        ship_headline_checkpoints(spec, &keep, r, &rd, &dst)?;
         let p = &loaded.progress;
         let chosen = match selected_in(spec, r, &state) {
             Some((_, it)) => format!(
@@ -287,8 +290,8 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Actor-only copies of run `r`'s headline checkpoints (`[checkpoints]`) that its
-/// run directory holds, into `dst/checkpoints/`: what evaluating them needs.
+/// Actor-only copies of run `r`'s headline checkpoints (`c`) that its run
+/// directory holds, into `dst/checkpoints/`: what evaluating them needs.
 fn ship_headline_checkpoints(
     spec: &ExperimentSpec,
     c: &spec::CheckpointsSpec,
