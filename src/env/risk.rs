@@ -83,26 +83,33 @@ pub struct RiskOutcome {
     pub penalty: f64,
 }
 
-/// r_risk = sum_i w_i * 1[s_i > s_bar_i] * B_p  (paper eq. 2).
-pub fn evaluate_risk<R: Rng>(s: &RobotState, cfg: &RiskConfig, rng: &mut R) -> RiskOutcome {
+/// Which risk terms' thresholds `s` passes (per joint where the config sets them).
+pub fn risk_crossings(s: &RobotState, cfg: &RiskConfig) -> [bool; NUM_RISK_TERMS] {
     let measures = risk_measures(s);
-    let mut out = RiskOutcome::default();
-    for (i, def) in RISK_TERMS.iter().enumerate() {
+    std::array::from_fn(|i| {
+        let def = &RISK_TERMS[i];
         let term = (def.setting)(cfg);
-        let crossed = match (term.per_joint, def.per_joint) {
+        match (term.per_joint, def.per_joint) {
             (Some(limits), Some(quantity)) => quantity(s)
                 .iter()
                 .zip(&limits)
                 .any(|(x, limit)| x.abs() > *limit),
             _ => measures[i] > term.threshold,
-        };
-        if crossed {
-            out.exceeded[i] = true;
-            // Draw only when exceeded: the stream of draws is the same whatever p is.
-            if rng.gen::<f64>() < cfg.probability {
-                out.fired[i] = true;
-                out.penalty += term.weight;
-            }
+        }
+    })
+}
+
+/// r_risk = sum_i w_i * 1[s_i > s_bar_i] * B_p  (paper eq. 2).
+pub fn evaluate_risk<R: Rng>(s: &RobotState, cfg: &RiskConfig, rng: &mut R) -> RiskOutcome {
+    let mut out = RiskOutcome {
+        exceeded: risk_crossings(s, cfg),
+        ..Default::default()
+    };
+    for (i, def) in RISK_TERMS.iter().enumerate() {
+        // Draw only when exceeded: the stream of draws is the same whatever p is.
+        if out.exceeded[i] && rng.gen::<f64>() < cfg.probability {
+            out.fired[i] = true;
+            out.penalty += (def.setting)(cfg).weight;
         }
     }
     out

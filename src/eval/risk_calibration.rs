@@ -76,8 +76,8 @@ pub fn calibrate_risk(
             }
             let s = env.state();
             states += 1;
-            let out = crate::env::risk::evaluate_risk(s, &cfg.env.risk, &mut NoDraw);
-            for (c, e) in crossed.iter_mut().zip(out.exceeded) {
+            let crossings = crate::env::risk::risk_crossings(s, &cfg.env.risk);
+            for (c, e) in crossed.iter_mut().zip(crossings) {
                 *c += e as usize;
             }
             for (k, quantity) in [&s.qd_rad_s, &s.qdd_rad_s2, &s.torques_nm]
@@ -121,25 +121,6 @@ pub fn calibrate_risk(
         crossed_after,
         saturated_joints,
     })
-}
-
-/// A random source that never fires a penalty (crossings only).
-struct NoDraw;
-
-impl rand::RngCore for NoDraw {
-    fn next_u32(&mut self) -> u32 {
-        u32::MAX
-    }
-    fn next_u64(&mut self) -> u64 {
-        u64::MAX
-    }
-    fn fill_bytes(&mut self, dest: &mut [u8]) {
-        dest.fill(0xff);
-    }
-    fn try_fill_bytes(&mut self, dest: &mut [u8]) -> Result<(), rand::Error> {
-        dest.fill(0xff);
-        Ok(())
-    }
 }
 
 impl RiskCalibration {

@@ -9,7 +9,7 @@ use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 
 use super::curves::CurvePoint;
-use super::plots::PALETTE;
+use super::plots::{unique, PALETTE};
 use super::results::ExperimentResults;
 
 fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
@@ -41,16 +41,6 @@ pub const CURVE_FIGURES: [(&str, &str, &str, &str, f64); 3] = [
     ),
 ];
 
-fn methods_in(points: &[&CurvePoint]) -> Vec<String> {
-    let mut out: Vec<String> = Vec::new();
-    for p in points {
-        if !out.contains(&p.policy) {
-            out.push(p.policy.clone());
-        }
-    }
-    out
-}
-
 /// One figure; nothing is written when the benchmark has no points.
 fn curve_figure(
     r: &ExperimentResults,
@@ -61,7 +51,7 @@ fn curve_figure(
     if points.is_empty() {
         return Ok(());
     }
-    let methods = methods_in(&points);
+    let methods = unique(points.iter().map(|p| p.policy.clone()));
     let rung_max = points.iter().map(|p| p.severity).max().unwrap_or(0) as f64;
     let (lo, hi) = points.iter().fold((0.0f64, f64::MIN), |(lo, hi), p| {
         (lo.min(p.estimate.lo), hi.max(p.estimate.hi))

@@ -85,7 +85,7 @@ pub fn load_kth(
             let r = spec
                 .run(l)
                 .ok_or_else(|| anyhow::anyhow!("no run labelled {l:?}"))?;
-            let target = super::run_state(spec, r)?.target;
+            let target = super::run_target(spec, r)?;
             let it = headline_iterations(c, target)?[k];
             NamedPolicy::load(l, &checkpoint_path(spec, r, it)?)
         })
@@ -308,7 +308,7 @@ fn spreads(
             let r = spec
                 .run(&run)
                 .ok_or_else(|| anyhow::anyhow!("no run labelled {run:?}"))?;
-            let target = super::run_state(spec, r)?.target;
+            let target = super::run_target(spec, r)?;
             Ok(CheckpointSpread {
                 benchmark,
                 run,

@@ -69,10 +69,20 @@ pub fn run_config(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<TrainConfi
     Ok(cfg)
 }
 
+/// The iterations run `r` with config `cfg` trains to: PPO's, then RMA's phase 2.
+fn target_iterations(r: &spec::RunSpec, cfg: &TrainConfig) -> usize {
+    r.iterations + cfg.learner.adaptation.as_ref().map_or(0, |a| a.iterations)
+}
+
+/// The iterations run `r` trains to, from its config alone (no checkpoint read).
+pub fn run_target(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<usize> {
+    Ok(target_iterations(r, &run_config(spec, r)?))
+}
+
 /// Where run `r` stands (reads its newest readable checkpoint).
 pub fn run_state(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<RunState> {
     let cfg = run_config(spec, r)?;
-    let target = r.iterations + cfg.learner.adaptation.as_ref().map_or(0, |a| a.iterations);
+    let target = target_iterations(r, &cfg);
     let dir = spec.run_dir(r);
     let progress = match newest_checkpoint(spec, r)? {
         Some(path) => {
@@ -299,7 +309,7 @@ fn ship_headline_checkpoints(
     rd: &RunDir,
     dst: &Path,
 ) -> Result<()> {
-    let target = run_state(spec, r)?.target;
+    let target = run_target(spec, r)?;
     let Ok(iterations) = kcheck::headline_iterations(c, target) else {
         return Ok(());
     };

@@ -363,7 +363,7 @@ where
     Ok(())
 }
 
-fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
+pub(super) fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
     let mut out: Vec<String> = Vec::new();
     for s in it {
         if !out.contains(&s) {
