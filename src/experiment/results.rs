@@ -70,7 +70,7 @@ impl TrackingEstimates {
         }
     }
 
-    /// The targets: linear >= 0.8, yaw >= 0.7, falls < 5%.
+    /// The tracking targets: linear >= 0.8, yaw >= 0.7, falls < 5%.
     pub fn meets_targets(&self) -> bool {
         self.lin.value >= 0.8 && self.yaw.value >= 0.7 && self.falls.value < 0.05
     }
