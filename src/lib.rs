@@ -16,6 +16,29 @@
 //! - `export`, `viz`, `config`, `cli`: ONNX and its sidecar; rerun recordings; the run
 //!   config; the subcommands. (These need the default `sim` feature.)
 //!
+//! Module map, every file (each opens with a paragraph on what it holds):
+//! - `sim`: `data`, `error`, `ffi` (bindgen), `model`, `shim` (guarded MuJoCo calls).
+//! - `robot`: `layout` (parts by name), `params` (randomisable values), `pd` (torques),
+//!   `standing` (the standing check).
+//! - `learn`: `actor_critic`, `nets` (MLP and IQN with hand-written backward), `mat` and
+//!   `amx` (kernels), `adam`, `ppo` (the update), `storage` (rollout, GAE, IQN targets),
+//!   `risk` (distortions, quantile Huber), `normalizer`, `adaptation` (RMA phase 2),
+//!   `layout` (observation groups), `checkpoint` (safetensors), `collective` (sums across
+//!   ranks), `learner` (the facade the runner calls).
+//! - `env`: `config` (the task as data), `observation`, `privileged`, `reward`, `risk`,
+//!   `state`, `single` (one robot: reset and step), `vec_env`, `scene`, `terrain`,
+//!   `heightfield`, `snapshot` (resume codec), `bench`.
+//! - `runner`: `train` (the `Trainer` loop), `setup` (fresh start or resume),
+//!   `run_dir` (files and lock), `job` (what crosses MPI ranks), `status` (bar and log
+//!   lines), `faults` (fault injection, divergence stop), `metrics`, `policy_file`,
+//!   `resume` (exact-resume state), `adapt` (RMA phase 2 in a run), `dist` (MPI world).
+//! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,
+//!   `race`, `falls`, `severity`, `risk_calibration`, `report`.
+//! - `experiment`: `spec`, `selection`, `kcheck`, `stats`, `pooled`, `results`, `curves`,
+//!   `ladder`, `plots`, `curve_plots`.
+//! - `export`: `onnx` (the protobuf subset); `viz`: `episode`, `play`, `train`, `value`,
+//!   `blueprint`, `sink`, `rrd`, `convert`; `cli`: one file per subcommand.
+//!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
 //! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
 //! ([`memory`]): each carries an explicit allow.

@@ -1,6 +1,6 @@
 //! `rall train`: start or resume a training run.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -106,68 +106,9 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
     let (cfg, run_dir, resume) = match (&args.resume, &args.run_dir) {
         // rank 0 reads the run's checkpoint and broadcasts it (`train_in`)
         (Some(dir), _) if !world.is_root() => (TrainConfig::default(), dir.clone(), true),
-        (Some(dir), _) => {
-            // what the run was started with; only runner settings may change
-            let run = RunDir { root: dir.clone() };
-            if args.restart_adaptation {
-                let from = restart_adaptation(&run)?;
-                let next = match args.iterations {
-                    Some(n) if n > from => {
-                        format!("the teacher trains on from iteration {from} to {n} (phase 1), then phase 2 starts afresh")
-                    }
-                    _ => format!("phase 2 restarts from iteration {from} on the frozen teacher"),
-                };
-                eprintln!(
-                    "{}: {next} (the discarded checkpoints are in discarded-adaptation/)",
-                    dir.display()
-                );
-            }
-            let mut cfg = match run.resume_point() {
-                Ok((_, loaded)) => loaded.config,
-                // stopped before its first checkpoint: `train` starts it again
-                Err(e) => run
-                    .config_before_first_checkpoint()?
-                    .ok_or(e)
-                    .with_context(|| format!("cannot resume {}", dir.display()))?,
-            };
-            apply_runner_overrides(&mut cfg, args);
-            if let Some(reset) = args.action_std_reset {
-                match cfg.runner.action_std_reset {
-                    Some(had) if had != reset => bail!(
-                        "{} already resets the action std after iteration {} (to {}): a run has one such stage",
-                        dir.display(),
-                        had.after_iteration,
-                        had.action_std
-                    ),
-                    _ => cfg.runner.action_std_reset = Some(reset),
-                }
-            }
-            cfg.validate().context("after command-line overrides")?;
-            (cfg, dir.clone(), true)
-        }
+        (Some(dir), _) => (resumed_config(dir, args)?, dir.clone(), true),
         (None, run_dir) => {
-            let config = args
-                .config
-                .clone()
-                .unwrap_or_else(|| PathBuf::from("configs/flat.toml"));
-            let mut cfg = TrainConfig::from_toml_file(&config)?;
-            apply_run_overrides(&mut cfg, args);
-            apply_runner_overrides(&mut cfg, args);
-            if let Some(reset) = args.action_std_reset {
-                cfg.runner.action_std_reset = Some(reset);
-            }
-            cfg.validate().context("after command-line overrides")?;
-            let run_dir = run_dir
-                .clone()
-                .unwrap_or_else(|| default_run_dir(&config, &cfg));
-            let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
-            if taken && world.is_root() {
-                bail!(
-                    "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
-                    run_dir.display(),
-                    run_dir.display()
-                );
-            }
+            let (cfg, run_dir) = new_run_config(world, run_dir.as_ref(), args)?;
             (cfg, run_dir, false)
         }
     };
@@ -234,6 +175,82 @@ fn run_in(world: &World, args: &TrainArgs) -> Result<()> {
         summary.last_checkpoint.display()
     );
     Ok(())
+}
+
+/// The config a resumed run continues with: the one it was started with, with
+/// this invocation's runner settings (and RMA's phase 2 restarted if asked).
+fn resumed_config(dir: &Path, args: &TrainArgs) -> Result<TrainConfig> {
+    // what the run was started with; only runner settings may change
+    let run = RunDir {
+        root: dir.to_path_buf(),
+    };
+    if args.restart_adaptation {
+        let from = restart_adaptation(&run)?;
+        let next = match args.iterations {
+            Some(n) if n > from => {
+                format!("the teacher trains on from iteration {from} to {n} (phase 1), then phase 2 starts afresh")
+            }
+            _ => format!("phase 2 restarts from iteration {from} on the frozen teacher"),
+        };
+        eprintln!(
+            "{}: {next} (the discarded checkpoints are in discarded-adaptation/)",
+            dir.display()
+        );
+    }
+    let mut cfg = match run.resume_point() {
+        Ok((_, loaded)) => loaded.config,
+        // stopped before its first checkpoint: `train` starts it again
+        Err(e) => run
+            .config_before_first_checkpoint()?
+            .ok_or(e)
+            .with_context(|| format!("cannot resume {}", dir.display()))?,
+    };
+    apply_runner_overrides(&mut cfg, args);
+    if let Some(reset) = args.action_std_reset {
+        match cfg.runner.action_std_reset {
+            Some(had) if had != reset => bail!(
+                "{} already resets the action std after iteration {} (to {}): a run has one such stage",
+                dir.display(),
+                had.after_iteration,
+                had.action_std
+            ),
+            _ => cfg.runner.action_std_reset = Some(reset),
+        }
+    }
+    cfg.validate().context("after command-line overrides")?;
+    Ok(cfg)
+}
+
+/// A new run's config (the file and the command-line overrides) and its directory,
+/// refused when that directory already holds a run.
+fn new_run_config(
+    world: &World,
+    run_dir: Option<&PathBuf>,
+    args: &TrainArgs,
+) -> Result<(TrainConfig, PathBuf)> {
+    let config = args
+        .config
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("configs/flat.toml"));
+    let mut cfg = TrainConfig::from_toml_file(&config)?;
+    apply_run_overrides(&mut cfg, args);
+    apply_runner_overrides(&mut cfg, args);
+    if let Some(reset) = args.action_std_reset {
+        cfg.runner.action_std_reset = Some(reset);
+    }
+    cfg.validate().context("after command-line overrides")?;
+    let run_dir = run_dir
+        .cloned()
+        .unwrap_or_else(|| default_run_dir(&config, &cfg));
+    let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
+    if taken && world.is_root() {
+        bail!(
+            "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
+            run_dir.display(),
+            run_dir.display()
+        );
+    }
+    Ok((cfg, run_dir))
 }
 
 /// Overrides that define a new run (refused with `--resume` by clap).

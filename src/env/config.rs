@@ -403,6 +403,24 @@ impl EnvConfig {
     /// Refuses impossible values with a message naming the key.
     pub fn validate(&self) -> Result<(), String> {
         self.control.validate()?;
+        self.validate_noise()?;
+        self.validate_magnitudes()?;
+        self.validate_groups()?;
+        check(
+            self.reward.tracking_sigma > 0.0,
+            "reward.tracking_sigma",
+            "must be positive",
+        )?;
+        self.validate_risk()?;
+        self.validate_commands_and_episode()?;
+        self.validate_randomization()?;
+        self.validate_push()?;
+        self.terrain.validate()?;
+        Ok(())
+    }
+
+    /// Observation noise: every std finite and >= 0.
+    fn validate_noise(&self) -> Result<(), String> {
         let o = &self.observation;
         for (k, v) in [
             ("observation.noise_std.lin_vel", o.noise_std.lin_vel),
@@ -418,7 +436,12 @@ impl EnvConfig {
                 format!("must be >= 0, got {v}"),
             )?;
         }
-        self.validate_magnitudes()?;
+        Ok(())
+    }
+
+    /// Observation groups: `policy` among them, none twice; a sane history length.
+    fn validate_groups(&self) -> Result<(), String> {
+        let o = &self.observation;
         check(
             o.groups.contains(&super::observation::ObsGroup::Policy),
             "observation.groups",
@@ -436,11 +459,11 @@ impl EnvConfig {
             "observation.history_steps",
             format!("must be in 1..=1000, got {}", o.history_steps),
         )?;
-        check(
-            self.reward.tracking_sigma > 0.0,
-            "reward.tracking_sigma",
-            "must be positive",
-        )?;
+        Ok(())
+    }
+
+    /// Risk: a probability, and each term's threshold and weight.
+    fn validate_risk(&self) -> Result<(), String> {
         let p = self.risk.probability;
         check(
             (0.0..=1.0).contains(&p),
@@ -471,6 +494,11 @@ impl EnvConfig {
                 "must be >= 0 (it is subtracted)",
             )?;
         }
+        Ok(())
+    }
+
+    /// Command ranges and intervals, episode length and tilt limit.
+    fn validate_commands_and_episode(&self) -> Result<(), String> {
         let c = &self.commands;
         check_range(c.vx_mps, "commands.vx_mps")?;
         check_range(c.vy_mps, "commands.vy_mps")?;
@@ -490,6 +518,11 @@ impl EnvConfig {
             "episode.max_tilt_rad",
             "must be positive",
         )?;
+        Ok(())
+    }
+
+    /// Domain-randomisation ranges (friction, mass, motors, gains, centre of mass).
+    fn validate_randomization(&self) -> Result<(), String> {
         let r = &self.randomization;
         if let Some(f) = r.friction {
             check_range(f, "randomization.friction")?;
@@ -516,6 +549,12 @@ impl EnvConfig {
                 format!("must stay within +-0.3 m of the trunk's centre, got {c:?}"),
             )?;
         }
+        Ok(())
+    }
+
+    /// Pushes: positive intervals, non-negative strengths.
+    fn validate_push(&self) -> Result<(), String> {
+        let r = &self.randomization;
         match r.push {
             PushConfig::None => {}
             PushConfig::VelocityKick {
@@ -547,7 +586,6 @@ impl EnvConfig {
                 )?;
             }
         }
-        self.terrain.validate()?;
         Ok(())
     }
 

@@ -224,17 +224,7 @@ pub fn evaluate_tracking_with_falls(
     envs.drain_episodes().for_each(drop);
     let mut robots = vec![RobotTracking::default(); episodes];
     let mut obs = envs.batch().obs.clone();
-    let limits: Vec<f64> = (0..crate::robot::NUM_JOINTS)
-        .map(|j| cfg.control.torque_limit_nm(j))
-        .collect();
-    // Each robot's last step as a fall record, completed (length, end, steps at the
-    // torque limit) once the episode's end is known; bit i of `at_limit`: i steps
-    // back a motor was at its limit.
-    let mut last: Vec<Option<FallRecord>> = vec![None; episodes];
-    let mut at_limit = vec![0u32; episodes];
-    // per robot: the command followed, the step it started, and the one before it
-    let mut followed: Vec<Option<([f64; 3], usize)>> = vec![None; episodes];
-    let mut previous: Vec<Option<[f64; 3]>> = vec![None; episodes];
+    let mut watch = FallWatch::new(episodes, env_cfg);
     for step in 0..max_steps {
         let actions = match mode {
             ActionMode::Mean => learner.act_mean(&obs),
@@ -253,43 +243,8 @@ pub fn evaluate_tracking_with_falls(
                 alive[i] = false;
                 continue;
             }
-            let s = env.state();
-            let c = commands[i];
-            let v = s.base_lin_vel_body_mps;
-            let lin_err = (c[0] - v[0]).powi(2) + (c[1] - v[1]).powi(2);
-            let yaw_err = (c[2] - s.base_ang_vel_body_rad_s[2]).powi(2);
-            let robot = &mut robots[i];
-            robot.lin_score_sum += (-lin_err / sigma).exp();
-            robot.yaw_score_sum += (-yaw_err / sigma).exp();
-            robot.scored_steps += 1;
-            let saturated = s
-                .torques_nm
-                .iter()
-                .zip(&limits)
-                .any(|(t, l)| t.abs() >= 0.99 * l);
-            at_limit[i] = ((at_limit[i] << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1);
-            match followed[i] {
-                Some((before, _)) if before == c => {}
-                Some((before, _)) => {
-                    previous[i] = Some(before);
-                    followed[i] = Some((c, step));
-                }
-                None => followed[i] = Some((c, step)),
-            }
-            last[i] = Some(FallRecord {
-                env_index: i,
-                steps: 0,
-                end: EpisodeEnd::TimeOut,
-                command: c,
-                roll_rad: s.roll_rad,
-                pitch_rad: s.pitch_rad,
-                base_lin_vel_body_mps: v,
-                foot_contact: s.foot_contact,
-                steps_at_torque_limit: 0,
-                steps_since_command_change: 0,
-                previous_command: previous[i],
-                draw: env.draw,
-            });
+            score_step(&mut robots[i], commands[i], env.state(), sigma);
+            watch.observe(i, step, commands[i], env);
         }
         if alive.iter().all(|a| !a) {
             break;
@@ -302,6 +257,32 @@ pub fn evaluate_tracking_with_falls(
             first[e.env_index] = Some(e);
         }
     }
+    let falls = watch.falls(&first);
+    Ok((tracking_report(robots, &first, max_steps), falls))
+}
+
+/// Adds one step's tracking scores exp(-err^2 / sigma) of command `c`.
+fn score_step(
+    robot: &mut RobotTracking,
+    c: [f64; 3],
+    s: &crate::env::state::RobotState,
+    sigma: f64,
+) {
+    let v = s.base_lin_vel_body_mps;
+    let lin_err = (c[0] - v[0]).powi(2) + (c[1] - v[1]).powi(2);
+    let yaw_err = (c[2] - s.base_ang_vel_body_rad_s[2]).powi(2);
+    robot.lin_score_sum += (-lin_err / sigma).exp();
+    robot.yaw_score_sum += (-yaw_err / sigma).exp();
+    robot.scored_steps += 1;
+}
+
+/// The report over the robots' first episodes (`first[i]`: robot i's, if it ended).
+fn tracking_report(
+    mut robots: Vec<RobotTracking>,
+    first: &[Option<crate::env::EpisodeSummary>],
+    max_steps: usize,
+) -> TrackingReport {
+    let episodes = robots.len();
     let lengths: Vec<(usize, bool)> = first
         .iter()
         .map(|e| {
@@ -312,25 +293,10 @@ pub fn evaluate_tracking_with_falls(
         .collect();
     let ended = |end: EpisodeEnd| first.iter().flatten().filter(|e| e.end == end).count();
     let n = episodes.max(1) as f64;
-    let falls: Vec<FallRecord> = first
-        .iter()
-        .flatten()
-        .filter(|e| e.end != EpisodeEnd::TimeOut)
-        .filter_map(|e| {
-            last[e.env_index].map(|f| FallRecord {
-                steps: e.steps,
-                end: e.end,
-                steps_at_torque_limit: at_limit[e.env_index].count_ones() as usize,
-                steps_since_command_change: e.steps
-                    - followed[e.env_index].map_or(0, |(_, from)| from.min(e.steps)),
-                ..f
-            })
-        })
-        .collect();
     for (robot, (_, fell)) in robots.iter_mut().zip(&lengths) {
         robot.fell = *fell;
     }
-    let report = TrackingReport {
+    TrackingReport {
         episodes,
         lin_vel_score: lin_vel_score(&robots),
         yaw_rate_score: yaw_rate_score(&robots),
@@ -341,8 +307,87 @@ pub fn evaluate_tracking_with_falls(
         tilts: ended(EpisodeEnd::Tilt),
         unstable: ended(EpisodeEnd::Unstable),
         robots,
-    };
-    Ok((report, falls))
+    }
+}
+
+/// Each robot's last step as a fall record, completed (length, end, steps at
+/// the torque limit) once the episode's end is known.
+struct FallWatch {
+    last: Vec<Option<FallRecord>>,
+    /// Bit i: i steps back a motor was at its limit.
+    at_limit: Vec<u32>,
+    /// The command followed and the step it started.
+    followed: Vec<Option<([f64; 3], usize)>>,
+    /// The command before it.
+    previous: Vec<Option<[f64; 3]>>,
+    torque_limits_nm: Vec<f64>,
+}
+
+impl FallWatch {
+    fn new(robots: usize, cfg: &EnvConfig) -> FallWatch {
+        FallWatch {
+            last: vec![None; robots],
+            at_limit: vec![0u32; robots],
+            followed: vec![None; robots],
+            previous: vec![None; robots],
+            torque_limits_nm: (0..crate::robot::NUM_JOINTS)
+                .map(|j| cfg.control.torque_limit_nm(j))
+                .collect(),
+        }
+    }
+
+    /// Robot `i`'s state after `step`, following command `c`.
+    fn observe(&mut self, i: usize, step: usize, c: [f64; 3], env: &crate::env::Env) {
+        let s = env.state();
+        let saturated = s
+            .torques_nm
+            .iter()
+            .zip(&self.torque_limits_nm)
+            .any(|(t, l)| t.abs() >= 0.99 * l);
+        self.at_limit[i] =
+            ((self.at_limit[i] << 1) | saturated as u32) & ((1 << FALL_WINDOW_STEPS) - 1);
+        match self.followed[i] {
+            Some((before, _)) if before == c => {}
+            Some((before, _)) => {
+                self.previous[i] = Some(before);
+                self.followed[i] = Some((c, step));
+            }
+            None => self.followed[i] = Some((c, step)),
+        }
+        self.last[i] = Some(FallRecord {
+            env_index: i,
+            steps: 0,
+            end: EpisodeEnd::TimeOut,
+            command: c,
+            roll_rad: s.roll_rad,
+            pitch_rad: s.pitch_rad,
+            base_lin_vel_body_mps: s.base_lin_vel_body_mps,
+            foot_contact: s.foot_contact,
+            steps_at_torque_limit: 0,
+            steps_since_command_change: 0,
+            previous_command: self.previous[i],
+            draw: env.draw,
+        });
+    }
+
+    /// The records of the robots whose first episode ended in a fall.
+    fn falls(&self, first: &[Option<crate::env::EpisodeSummary>]) -> Vec<FallRecord> {
+        first
+            .iter()
+            .flatten()
+            .filter(|e| e.end != EpisodeEnd::TimeOut)
+            .filter_map(|e| {
+                self.last[e.env_index].map(|f| FallRecord {
+                    steps: e.steps,
+                    end: e.end,
+                    steps_at_torque_limit: self.at_limit[e.env_index].count_ones() as usize,
+                    steps_since_command_change: e.steps
+                        - self.followed[e.env_index].map_or(0, |(_, from)| from.min(e.steps)),
+                    ..f
+                })
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]

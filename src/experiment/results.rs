@@ -70,7 +70,7 @@ impl TrackingEstimates {
         }
     }
 
-    /// The targets: linear >= 0.8, yaw >= 0.7, falls < 5%.
+    /// The tracking targets: linear >= 0.8, yaw >= 0.7, falls < 5%.
     pub fn meets_targets(&self) -> bool {
         self.lin.value >= 0.8 && self.yaw.value >= 0.7 && self.falls.value < 0.05
     }
@@ -194,146 +194,8 @@ impl ExperimentResults {
         eval_wall_s: f64,
     ) -> ExperimentResults {
         let b = &spec.bootstrap;
-        let ci = |cell: String, units: &[f64], stat: &dyn Fn(&[f64]) -> f64| {
-            bootstrap(units, stat, b.resamples, b.level, cell_seed(b.seed, &cell))
-        };
         let methods = MethodTables::new(spec, ttf.as_ref(), platform.as_ref(), race.as_ref());
-        let run_rows = runs
-            .iter()
-            .map(|(r, s)| {
-                let p = s.progress.clone().unwrap_or_default();
-                let found = tracking.iter().find(|t| t.label == r.label);
-                // one seed for both: the same robots give the same interval
-                let cell = format!("tracking/{}", r.label);
-                let estimates = |t: &TrackingReport| {
-                    TrackingEstimates::new(t, b.resamples, b.level, |what| {
-                        cell_seed(b.seed, &format!("{cell}/{what}"))
-                    })
-                };
-                RunRow {
-                    label: r.label.clone(),
-                    config: r.config.display().to_string(),
-                    seed: r.seed,
-                    dir: s.dir.display().to_string(),
-                    iterations_done: p.iteration,
-                    iterations_target: s.target,
-                    env_steps: p.total_env_steps,
-                    wall_clock_h: p.wall_s / 3600.0,
-                    terrain_level: p
-                        .terrain_levels
-                        .as_ref()
-                        .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
-                    tracking: found.map(|t| estimates(&t.own)),
-                    policy_iteration: found.and_then(|t| t.policy_iteration),
-                    tracking_episodes: found.map_or(0, |t| t.own.episodes),
-                    common_tracking: found
-                        .map(|t| t.common.iter().map(estimates).collect())
-                        .unwrap_or_default(),
-                }
-            })
-            .collect();
-        let ttf_rows = ttf
-            .iter()
-            .flat_map(|t| &t.cells)
-            .map(|c| {
-                let steps: Vec<f64> = c.steps_per_robot.iter().map(|&s| s as f64).collect();
-                let len = c.episode_steps.max(1) as f64;
-                let col = TTF_COLUMNS
-                    .iter()
-                    .position(|&(t, p)| t == c.terrain && p == c.push);
-                let paper = spec
-                    .paper
-                    .ttf
-                    .iter()
-                    .find(|row| row.load == c.load.name() && row.method == c.policy)
-                    .zip(col)
-                    .map(|(row, k)| row.ttf[k]);
-                TtfRow {
-                    method: c.policy.clone(),
-                    load: c.load.name().to_string(),
-                    terrain: c.terrain.clone(),
-                    push: c.push,
-                    ttf: ci(
-                        format!(
-                            "ttf/{}/{}/{}/{}",
-                            c.policy,
-                            c.load.name(),
-                            c.terrain,
-                            c.push
-                        ),
-                        &steps,
-                        &|v| mean(v) / len,
-                    ),
-                    robots: c.robots,
-                    paper,
-                }
-            })
-            .collect();
-        let platform_rows = platform
-            .iter()
-            .flat_map(|p| &p.cells)
-            .map(|c| {
-                let ok: Vec<f64> = c
-                    .success_per_robot
-                    .iter()
-                    .map(|&s| if s { 100.0 } else { 0.0 })
-                    .collect();
-                PlatformRow {
-                    method: c.policy.clone(),
-                    height_m: c.height_m,
-                    success_pct: ci(format!("platform/{}/{}", c.policy, c.height_m), &ok, &mean),
-                    robots: c.robots,
-                    paper: spec
-                        .paper
-                        .platform
-                        .iter()
-                        .find(|p| (p.height_m - c.height_m).abs() < 1e-6 && p.method == c.policy)
-                        .map(|p| p.success_pct),
-                }
-            })
-            .collect();
-        let per_agent = race.as_ref().map_or(1, |r| r.options.episodes.max(1));
-        let mut meta = Vec::new();
-        let mut race_rows = Vec::new();
-        for r in race.iter().flat_map(|r| &r.rows) {
-            // agents are the bootstrap units: each keeps its episodes together
-            let agents: Vec<Vec<f64>> = r.returns.chunks(per_agent).map(|c| c.to_vec()).collect();
-            let q = |q: f64| {
-                move |a: &[Vec<f64>]| quantile(&a.iter().flatten().copied().collect::<Vec<_>>(), q)
-            };
-            let est = |stat: &dyn Fn(&[Vec<f64>]) -> f64, quantile: &str| {
-                let seed = cell_seed(b.seed, &format!("race/{}/{quantile}", r.name));
-                bootstrap(&agents, stat, b.resamples, b.level, seed)
-            };
-            race_rows.push(RaceRow {
-                method: r.name.clone(),
-                q25: est(&q(0.25), "q25"),
-                q50: est(&q(0.5), "q50"),
-                q75: est(&q(0.75), "q75"),
-                mean_return: r.mean_return,
-                fall_fraction: r.fall_fraction,
-                episodes: r.episodes,
-            });
-            if let (Some(m), Some(ms)) = (&r.meta, spec.meta.iter().find(|m| m.label == r.name)) {
-                meta.push(MetaSummary {
-                    label: r.name.clone(),
-                    risky: m.config.risky.clone(),
-                    safe: m.config.safe.clone(),
-                    rule: format!(
-                        "threshold = quantile {} of {}'s critic IQR over {} robots x one episode on flat ground (random commands); back below {:.0}% of it after at least {} steps",
-                        ms.threshold_quantile,
-                        ms.risky,
-                        ms.calibration_robots,
-                        100.0 * (1.0 - ms.hysteresis_fraction),
-                        ms.min_safe_steps
-                    ),
-                    threshold: m.config.threshold,
-                    safe_fraction: m.safe_fraction,
-                    switches_per_episode: m.switches_per_episode,
-                    iqr_by_x: m.iqr_by_x.clone(),
-                });
-            }
-        }
+        let (race_rows, meta) = race_rows(spec, race.as_ref());
         ExperimentResults {
             name: spec.name.clone(),
             confidence: format!(
@@ -342,15 +204,15 @@ impl ExperimentResults {
                 b.resamples,
                 b.seed
             ),
-            runs: run_rows,
+            runs: run_rows(spec, &runs, &tracking),
             common_randomization: spec
                 .tracking
                 .randomization_from
                 .iter()
                 .map(|p| p.display().to_string())
                 .collect(),
-            ttf: ttf_rows,
-            platform: platform_rows,
+            ttf: ttf_rows(spec, ttf.as_ref()),
+            platform: platform_rows(spec, platform.as_ref()),
             race: race_rows,
             meta,
             methods,
@@ -470,6 +332,22 @@ impl ExperimentResults {
             "Every number: ours with its {} in brackets; the paper's beside it where it gives one.\n",
             self.confidence
         );
+        self.runs_markdown(&mut s);
+        self.common_ground_markdown(&mut s);
+
+        self.curves_markdown(&mut s);
+        self.spread_markdown(&mut s);
+        self.methods_markdown(&mut s);
+        self.per_run_markdown(&mut s);
+        let _ = writeln!(s, "\n## Figures\n");
+        for (f, what) in plots_list() {
+            let _ = writeln!(s, "- [{f}](figures/{f}): {what}");
+        }
+        s
+    }
+
+    /// The training runs: budget, progress and tracking of each.
+    fn runs_markdown(&self, s: &mut String) {
         let _ = writeln!(s, "## Training runs\n");
         let _ = writeln!(
             s,
@@ -504,11 +382,10 @@ impl ExperimentResults {
         let _ = writeln!(s, "\nTracking: `rall eval tracking` protocol ({} episodes, mean actions, flat ground, each policy under its own training randomisation); targets: linear >= 0.8, yaw >= 0.7, falls < 5%.",
             self.runs.first().map_or(0, |r| r.tracking_episodes));
         let _ = writeln!(s);
-        self.common_ground_markdown(&mut s);
+    }
 
-        self.curves_markdown(&mut s);
-        self.spread_markdown(&mut s);
-        self.methods_markdown(&mut s);
+    /// Every run on its own: tables I and II, the race and the meta controllers.
+    fn per_run_markdown(&self, s: &mut String) {
         let _ = writeln!(s, "## Per training run\n");
         let _ = writeln!(
             s,
@@ -517,7 +394,7 @@ impl ExperimentResults {
         let loads = Self::methods_of(self.ttf.iter().map(|r| &r.load));
         let methods = Self::methods_of(self.ttf.iter().map(|r| &r.method));
         write_ttf_table(
-            &mut s,
+            s,
             &loads,
             &methods,
             |_, m| Some(m.to_string()),
@@ -580,11 +457,6 @@ impl ExperimentResults {
             );
         }
         let _ = writeln!(s, "\nThe paper gives the race only as a figure (fig. 4, right): the meta controller has the highest return at all three quantiles.");
-        let _ = writeln!(s, "\n## Figures\n");
-        for (f, what) in plots_list() {
-            let _ = writeln!(s, "- [{f}](figures/{f}): {what}");
-        }
-        s
     }
 
     /// The paper's TTF for `method` at `load` and column `k`.
@@ -700,7 +572,26 @@ impl ExperimentResults {
     }
 
     fn csv_files(&self) -> Vec<(&'static str, String)> {
-        let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
+        let mut files = vec![
+            ("runs.csv", self.runs_csv()),
+            ("ttf_by_method.csv", self.ttf_by_method_csv()),
+            ("platform_by_method.csv", self.platform_by_method_csv()),
+            ("race_by_method.csv", self.race_by_method_csv()),
+            ("ttf.csv", self.ttf_csv()),
+            ("platform.csv", self.platform_csv()),
+            ("race.csv", self.race_csv()),
+        ];
+        if !self.curves.is_empty() {
+            files.push(("curves.csv", curve_csv(&self.curves)));
+        }
+        if !self.checkpoint_spread.is_empty() {
+            files.push(("checkpoints.csv", self.checkpoints_csv()));
+        }
+        files
+    }
+
+    /// `runs.csv`: one row per run, its own and its common-ground tracking.
+    fn runs_csv(&self) -> String {
         let tracking_columns = |prefix: &str| {
             ["lin_tracking", "yaw_tracking", "fall_rate"]
                 .iter()
@@ -751,6 +642,11 @@ impl ExperimentResults {
                 opt(r.terrain_level),
             );
         }
+        runs
+    }
+
+    /// `ttf.csv`: time to fall per cell.
+    fn ttf_csv(&self) -> String {
         let mut ttf = String::from("method,load,terrain,push,ttf,ttf_lo,ttf_hi,robots,paper\n");
         for r in &self.ttf {
             let _ = writeln!(
@@ -765,6 +661,11 @@ impl ExperimentResults {
                 opt(r.paper)
             );
         }
+        ttf
+    }
+
+    /// `platform.csv`: platform success per cell.
+    fn platform_csv(&self) -> String {
         let mut platform =
             String::from("method,height_m,success_pct,success_lo,success_hi,robots,paper\n");
         for r in &self.platform {
@@ -778,6 +679,11 @@ impl ExperimentResults {
                 opt(r.paper)
             );
         }
+        platform
+    }
+
+    /// `race.csv`: race-track return quantiles per policy.
+    fn race_csv(&self) -> String {
         let mut race = String::from("method,q25,q25_lo,q25_hi,q50,q50_lo,q50_hi,q75,q75_lo,q75_hi,mean_return,fall_fraction,episodes\n");
         for r in &self.race {
             let _ = writeln!(
@@ -792,13 +698,11 @@ impl ExperimentResults {
                 r.episodes
             );
         }
-        let seeds = |m: &super::pooled::Method| csv_field(&m.seeds.join(";"));
-        let per_seed = |v: &[f64], d: usize| {
-            v.iter()
-                .map(|x| format!("{x:.d$}", d = d))
-                .collect::<Vec<_>>()
-                .join(";")
-        };
+        race
+    }
+
+    /// `ttf_by_method.csv`: time to fall pooled over each method's seeds.
+    fn ttf_by_method_csv(&self) -> String {
         let mut ttf_m =
             String::from("method,seeds,load,terrain,push,ttf,ttf_lo,ttf_hi,per_seed,robots\n");
         for r in &self.methods.ttf {
@@ -815,6 +719,11 @@ impl ExperimentResults {
                 r.robots
             );
         }
+        ttf_m
+    }
+
+    /// `platform_by_method.csv`: platform success pooled over seeds.
+    fn platform_by_method_csv(&self) -> String {
         let mut platform_m = String::from(
             "method,seeds,height_m,success_pct,success_lo,success_hi,per_seed,robots\n",
         );
@@ -830,6 +739,11 @@ impl ExperimentResults {
                 r.robots
             );
         }
+        platform_m
+    }
+
+    /// `race_by_method.csv`: race quantiles pooled over seeds.
+    fn race_by_method_csv(&self) -> String {
         let mut race_m = String::from("method,seeds,q25,q25_lo,q25_hi,q50,q50_lo,q50_hi,q75,q75_lo,q75_hi,per_seed_q25,per_seed_q50,per_seed_q75,fall_fraction,episodes\n");
         for r in &self.methods.race {
             let col = |k: usize| per_seed(&r.per_seed.iter().map(|q| q[k]).collect::<Vec<_>>(), 4);
@@ -848,32 +762,22 @@ impl ExperimentResults {
                 r.episodes
             );
         }
-        let mut files = vec![
-            ("runs.csv", runs),
-            ("ttf_by_method.csv", ttf_m),
-            ("platform_by_method.csv", platform_m),
-            ("race_by_method.csv", race_m),
-            ("ttf.csv", ttf),
-            ("platform.csv", platform),
-            ("race.csv", race),
-        ];
-        if !self.curves.is_empty() {
-            files.push(("curves.csv", curve_csv(&self.curves)));
-        }
-        if !self.checkpoint_spread.is_empty() {
-            let mut csv = String::from("benchmark,run,iteration,value\n");
-            for c in &self.checkpoint_spread {
-                for (it, v) in c.iterations.iter().zip(&c.values) {
-                    csv.push_str(&format!(
-                        "{},{},{it},{v:.4}\n",
-                        c.benchmark,
-                        csv_field(&c.run)
-                    ));
-                }
+        race_m
+    }
+
+    /// `checkpoints.csv`: each benchmark's value at every kept checkpoint.
+    fn checkpoints_csv(&self) -> String {
+        let mut csv = String::from("benchmark,run,iteration,value\n");
+        for c in &self.checkpoint_spread {
+            for (it, v) in c.iterations.iter().zip(&c.values) {
+                csv.push_str(&format!(
+                    "{},{},{it},{v:.4}\n",
+                    c.benchmark,
+                    csv_field(&c.run)
+                ));
             }
-            files.push(("checkpoints.csv", csv));
         }
-        files
+        csv
     }
 
     /// Writes README.md, the CSVs, results.json and figures/ into `dir`: first all
@@ -985,4 +889,189 @@ pub fn plots_list() -> [(&'static str, &'static str); 4] {
         ("race.svg", "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller"),
         ("race_iqr.svg", "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"),
     ]
+}
+
+/// The bootstrap interval of `stat` over `units`, seeded by the cell's name.
+fn cell_estimate(
+    spec: &ExperimentSpec,
+    cell: String,
+    units: &[f64],
+    stat: &dyn Fn(&[f64]) -> f64,
+) -> Estimate {
+    let b = &spec.bootstrap;
+    bootstrap(units, stat, b.resamples, b.level, cell_seed(b.seed, &cell))
+}
+
+/// One row per run: its budget and progress, and its tracking estimates.
+fn run_rows(
+    spec: &ExperimentSpec,
+    runs: &[(RunSpec, RunState)],
+    tracking: &[RunTracking],
+) -> Vec<RunRow> {
+    let b = &spec.bootstrap;
+    runs.iter()
+        .map(|(r, s)| {
+            let p = s.progress.clone().unwrap_or_default();
+            let found = tracking.iter().find(|t| t.label == r.label);
+            // one seed for both: the same robots give the same interval
+            let cell = format!("tracking/{}", r.label);
+            let estimates = |t: &TrackingReport| {
+                TrackingEstimates::new(t, b.resamples, b.level, |what| {
+                    cell_seed(b.seed, &format!("{cell}/{what}"))
+                })
+            };
+            RunRow {
+                label: r.label.clone(),
+                config: r.config.display().to_string(),
+                seed: r.seed,
+                dir: s.dir.display().to_string(),
+                iterations_done: p.iteration,
+                iterations_target: s.target,
+                env_steps: p.total_env_steps,
+                wall_clock_h: p.wall_s / 3600.0,
+                terrain_level: p
+                    .terrain_levels
+                    .as_ref()
+                    .map(|l| l.iter().sum::<usize>() as f64 / l.len().max(1) as f64),
+                tracking: found.map(|t| estimates(&t.own)),
+                policy_iteration: found.and_then(|t| t.policy_iteration),
+                tracking_episodes: found.map_or(0, |t| t.own.episodes),
+                common_tracking: found
+                    .map(|t| t.common.iter().map(estimates).collect())
+                    .unwrap_or_default(),
+            }
+        })
+        .collect()
+}
+
+/// Time to fall per cell (fraction of the episode), with the paper's number.
+fn ttf_rows(spec: &ExperimentSpec, ttf: Option<&TtfReport>) -> Vec<TtfRow> {
+    ttf.iter()
+        .flat_map(|t| &t.cells)
+        .map(|c| {
+            let steps: Vec<f64> = c.steps_per_robot.iter().map(|&s| s as f64).collect();
+            let len = c.episode_steps.max(1) as f64;
+            let col = TTF_COLUMNS
+                .iter()
+                .position(|&(t, p)| t == c.terrain && p == c.push);
+            let paper = spec
+                .paper
+                .ttf
+                .iter()
+                .find(|row| row.load == c.load.name() && row.method == c.policy)
+                .zip(col)
+                .map(|(row, k)| row.ttf[k]);
+            let cell = format!(
+                "ttf/{}/{}/{}/{}",
+                c.policy,
+                c.load.name(),
+                c.terrain,
+                c.push
+            );
+            TtfRow {
+                method: c.policy.clone(),
+                load: c.load.name().to_string(),
+                terrain: c.terrain.clone(),
+                push: c.push,
+                ttf: cell_estimate(spec, cell, &steps, &|v| mean(v) / len),
+                robots: c.robots,
+                paper,
+            }
+        })
+        .collect()
+}
+
+/// Platform success rate per cell (percent), with the paper's number.
+fn platform_rows(spec: &ExperimentSpec, platform: Option<&PlatformReport>) -> Vec<PlatformRow> {
+    platform
+        .iter()
+        .flat_map(|p| &p.cells)
+        .map(|c| {
+            let ok: Vec<f64> = c
+                .success_per_robot
+                .iter()
+                .map(|&s| if s { 100.0 } else { 0.0 })
+                .collect();
+            let cell = format!("platform/{}/{}", c.policy, c.height_m);
+            PlatformRow {
+                method: c.policy.clone(),
+                height_m: c.height_m,
+                success_pct: cell_estimate(spec, cell, &ok, &mean),
+                robots: c.robots,
+                paper: spec
+                    .paper
+                    .platform
+                    .iter()
+                    .find(|p| (p.height_m - c.height_m).abs() < 1e-6 && p.method == c.policy)
+                    .map(|p| p.success_pct),
+            }
+        })
+        .collect()
+}
+
+/// Race-track return quantiles per policy (agents are the bootstrap units),
+/// and a summary of each meta controller.
+fn race_rows(spec: &ExperimentSpec, race: Option<&RaceReport>) -> (Vec<RaceRow>, Vec<MetaSummary>) {
+    let b = &spec.bootstrap;
+    let per_agent = race.map_or(1, |r| r.options.episodes.max(1));
+    let mut meta = Vec::new();
+    let mut race_rows = Vec::new();
+    for r in race.iter().flat_map(|r| &r.rows) {
+        // agents are the bootstrap units: each keeps its episodes together
+        let agents: Vec<Vec<f64>> = r.returns.chunks(per_agent).map(|c| c.to_vec()).collect();
+        let q = |q: f64| {
+            move |a: &[Vec<f64>]| quantile(&a.iter().flatten().copied().collect::<Vec<_>>(), q)
+        };
+        let est = |stat: &dyn Fn(&[Vec<f64>]) -> f64, quantile: &str| {
+            let seed = cell_seed(b.seed, &format!("race/{}/{quantile}", r.name));
+            bootstrap(&agents, stat, b.resamples, b.level, seed)
+        };
+        race_rows.push(RaceRow {
+            method: r.name.clone(),
+            q25: est(&q(0.25), "q25"),
+            q50: est(&q(0.5), "q50"),
+            q75: est(&q(0.75), "q75"),
+            mean_return: r.mean_return,
+            fall_fraction: r.fall_fraction,
+            episodes: r.episodes,
+        });
+        if let (Some(m), Some(ms)) = (&r.meta, spec.meta.iter().find(|m| m.label == r.name)) {
+            meta.push(MetaSummary {
+                label: r.name.clone(),
+                risky: m.config.risky.clone(),
+                safe: m.config.safe.clone(),
+                rule: format!(
+                    "threshold = quantile {} of {}'s critic IQR over {} robots x one episode on flat ground (random commands); back below {:.0}% of it after at least {} steps",
+                    ms.threshold_quantile,
+                    ms.risky,
+                    ms.calibration_robots,
+                    100.0 * (1.0 - ms.hysteresis_fraction),
+                    ms.min_safe_steps
+                ),
+                threshold: m.config.threshold,
+                safe_fraction: m.safe_fraction,
+                switches_per_episode: m.switches_per_episode,
+                iqr_by_x: m.iqr_by_x.clone(),
+            });
+        }
+    }
+    (race_rows, meta)
+}
+
+/// An optional number as a CSV field (empty when absent).
+fn opt(v: Option<f64>) -> String {
+    v.map_or(String::new(), |v| format!("{v}"))
+}
+
+/// A pooled method's seeds as one CSV field.
+fn seeds(m: &super::pooled::Method) -> String {
+    csv_field(&m.seeds.join(";"))
+}
+
+/// Per-seed values joined by `;` with `d` decimals.
+fn per_seed(v: &[f64], d: usize) -> String {
+    v.iter()
+        .map(|x| format!("{x:.d$}", d = d))
+        .collect::<Vec<_>>()
+        .join(";")
 }

@@ -546,6 +546,46 @@ pub fn export_learner(
     let env = &config.env;
     let groups = env.obs_layout();
     let student = learner.latent_source() == crate::learn::LatentSource::Adaptation;
+    check_deployable(student, config, checkpoint)?;
+    let norm = folded_normalizer(learner);
+    let net = PolicyNet::from_learner(learner, &norm)?;
+    ensure!(
+        net.act_dim() == ACT_DIM,
+        "policy outputs {} actions, the robot has {ACT_DIM}",
+        net.act_dim()
+    );
+    let config_hash = fnv1a64_hex(&config.to_toml());
+    let reference = Reference::new(learner, config, opts)?;
+    let source = SidecarSource {
+        net: &net,
+        norm: &norm,
+        progress,
+        checkpoint,
+        onnx_path,
+        config_hash: &config_hash,
+    };
+    let mut sidecar = sidecar_json(&source, config, &reference)?;
+    if let PolicyNet::Student { history_steps, .. } = &net {
+        add_history_json(&mut sidecar, *history_steps, &reference.history);
+    }
+    let metadata = onnx_metadata(onnx_path, progress, &config_hash);
+    let model = onnx::model(net.graph(), model_doc(student), &metadata);
+    let bytes = onnx::encode(&model);
+    let side = write_export_files(onnx_path, &bytes, &sidecar)?;
+    Ok(ExportReport {
+        onnx_path: onnx_path.to_path_buf(),
+        sidecar_path: side,
+        iteration: progress.iteration,
+        config_hash,
+        onnx_bytes: bytes.len(),
+        reference_count: reference.rows.len() / groups.width(),
+    })
+}
+
+/// Refuses a policy a robot cannot run: one reading privileged observations
+/// (an RMA teacher), or a student that does not read `policy` and `history`.
+fn check_deployable(student: bool, config: &TrainConfig, checkpoint: &Path) -> Result<()> {
+    let groups = config.env.obs_layout();
     if student {
         ensure!(
             groups.range("history").is_some() && config.learner.actor_inputs == ["policy"],
@@ -561,63 +601,89 @@ pub fn export_learner(
             if config.learner.encoder.is_some() { " and a latent of the privileged group" } else { "" }
         );
     }
-    let norm = match learner.obs_normalizer() {
+    Ok(())
+}
+
+/// The learner's observation normaliser, to fold into the first layer (identity without one).
+fn folded_normalizer(learner: &Learner) -> ObsNormalizer {
+    match learner.obs_normalizer() {
         Some(n) => ObsNormalizer {
             mean: n.mean().to_vec(),
             std: n.divisor(),
         },
         None => ObsNormalizer::identity(learner.obs_dim()),
-    };
-    let net = PolicyNet::from_learner(learner, &norm)?;
-    ensure!(
-        net.act_dim() == ACT_DIM,
-        "policy outputs {} actions, the robot has {ACT_DIM}",
-        net.act_dim()
-    );
-    let scene = build_scene(env, config.runner.seed)?;
-    let robot = Robot::new(scene.model.try_clone()?, env.control.clone())?;
-    let names = robot.layout.joint_names.clone();
-    let default_q = robot.default_q_rad;
-    let c = &env.control;
-    let config_hash = fnv1a64_hex(&config.to_toml());
+    }
+}
 
-    let ref_rows = reference_pairs(learner, env, opts.reference_count, opts.seed)?;
-    let ref_act = learner.act_mean(&ref_rows);
-    // the graph's inputs: the policy group, and a student's history
-    let pick = |name: &str| -> Vec<f32> {
-        let mut out = Vec::new();
-        if let Some(r) = groups.range(name) {
-            crate::learn::gather_columns(&ref_rows, groups.width(), &[r], &mut out);
-        }
-        out
-    };
-    let ref_obs = pick("policy");
-    let ref_hist = pick("history");
-    let rows =
-        |v: &[f32], d: usize| -> Vec<Vec<f32>> { v.chunks_exact(d).map(<[f32]>::to_vec).collect() };
+/// Reference observations along a rollout of the policy, with its actions for them.
+struct Reference {
+    /// Full observation rows (every group).
+    rows: Vec<f32>,
+    actions: Vec<f32>,
+    /// The graph's inputs: the policy group, and a student's history.
+    obs: Vec<f32>,
+    history: Vec<f32>,
+}
 
-    let by_name = |vals: &dyn Fn(usize) -> f64| -> serde_json::Map<String, Value> {
-        names
-            .iter()
-            .enumerate()
-            .map(|(i, n)| (n.clone(), json!(vals(i))))
-            .collect()
-    };
+impl Reference {
+    fn new(learner: &Learner, config: &TrainConfig, opts: &ExportOptions) -> Result<Reference> {
+        let groups = config.env.obs_layout();
+        let rows = reference_pairs(learner, &config.env, opts.reference_count, opts.seed)?;
+        let actions = learner.act_mean(&rows);
+        let pick = |name: &str| -> Vec<f32> {
+            let mut out = Vec::new();
+            if let Some(r) = groups.range(name) {
+                crate::learn::gather_columns(&rows, groups.width(), &[r], &mut out);
+            }
+            out
+        };
+        let (obs, history) = (pick("policy"), pick("history"));
+        Ok(Reference {
+            rows,
+            actions,
+            obs,
+            history,
+        })
+    }
+}
+
+/// Rows of `d` values.
+fn json_rows(v: &[f32], d: usize) -> Vec<Vec<f32>> {
+    v.chunks_exact(d).map(<[f32]>::to_vec).collect()
+}
+
+fn file_name(p: &Path) -> Option<String> {
+    p.file_name().map(|f| f.to_string_lossy().into_owned())
+}
+
+/// What the sidecar says about where the policy came from and its graph.
+struct SidecarSource<'a> {
+    net: &'a PolicyNet,
+    norm: &'a ObsNormalizer,
+    progress: &'a Progress,
+    checkpoint: &'a Path,
+    onnx_path: &'a Path,
+    config_hash: &'a str,
+}
+
+/// The sidecar: the checkpoint, the graph, the observation, the robot's
+/// joints, action, PD law and rates, the control loop, and the references.
+fn sidecar_json(src: &SidecarSource, config: &TrainConfig, reference: &Reference) -> Result<Value> {
+    let (net, progress) = (src.net, src.progress);
     let inputs: Vec<Value> = net
         .inputs()
         .iter()
         .map(|(n, dims)| json!({"name": n, "dtype": "float32", "shape": dims_json(dims)}))
         .collect();
-    let file_name = |p: &Path| p.file_name().map(|f| f.to_string_lossy().into_owned());
-    let sidecar = json!({
+    let mut sidecar = json!({
         "format": "rall-onnx-sidecar",
         "format_version": SIDECAR_VERSION,
-        "onnx_file": file_name(onnx_path),
+        "onnx_file": file_name(src.onnx_path),
         "checkpoint": {
-            "file": file_name(checkpoint),
+            "file": file_name(src.checkpoint),
             "iteration": progress.iteration,
             "total_env_steps": progress.total_env_steps,
-            "config_hash": config_hash,
+            "config_hash": src.config_hash,
             "config_hash_algorithm": "FNV-1a 64-bit over the checkpoint's run config re-serialised as TOML (rall's TrainConfig::to_toml)",
             "rall_version": env!("CARGO_PKG_VERSION"),
         },
@@ -628,108 +694,134 @@ pub fn export_learner(
             "outputs": [{"name": ACTION_OUTPUT, "dtype": "float32", "shape": [onnx::BATCH_DIM, net.act_dim()],
                          "meaning": "raw action a (the Gaussian policy's mean): not clipped, not scaled"}],
             "batch_dimension": "dynamic (`batch`); a controller feeds batch 1",
-            "normalizer": {"kind": if norm.is_identity() { "identity" } else { "folded" },
+            "normalizer": {"kind": if src.norm.is_identity() { "identity" } else { "folded" },
                            "note": "rall trains without an observation normaliser: the network takes the scaled observation below as is. (A normaliser, if one is added, is folded into the first layer of the ONNX graph.)"},
         },
         "network": net.describe(),
-        "observation": observation_json(env)?,
-        "joints": {
-            "names": &names,
-            "order": "Unitree SDK: FR, FL, RR, RL legs x (hip, thigh, calf); index i of every per-joint array below and of the observation and action",
-            "default_angles_rad": by_name(&|i| default_q[i]),
-            "default_angles_rad_in_order": default_q.to_vec(),
-            "source": format!("keyframe `{}` of {}", c.default_keyframe, env.robot_mjcf),
-            "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
+        "observation": observation_json(&config.env)?,
+        "reference": {
+            "description": format!("{} noise-free observations along a rollout of this policy on flat ground in rall (every 10th policy step), with the actions rall computes for them; a runtime feeding `observations` as one batch must return `actions` within the tolerance", reference.obs.len() / OBS_DIM),
+            "tolerance_abs": REFERENCE_TOLERANCE,
+            "observations": json_rows(&reference.obs, OBS_DIM),
+            "actions": json_rows(&reference.actions, ACT_DIM),
         },
-        "action": {
-            "dim": ACT_DIM,
-            "clip": c.clip_actions,
-            "scale_rad": c.action_scale_rad,
-            "target_law": format!("q_target[i] = default_angles_rad[i] + {s} * clip(a[i], -{k}, {k})   (rad), held for one policy step", s = c.action_scale_rad, k = c.clip_actions),
-            "previous_action": "observation field previous_action = the raw a returned at the previous policy step (before clip and scale)",
-        },
-        "pd": {
-            "kp_nm_per_rad": c.kp_nm_per_rad,
-            "kd_nm_s_per_rad": c.kd_nm_s_per_rad,
-            "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
-            "law": format!("every physics step (every {dt} s): tau[i] = clip({kp} * (q_target[i] - q[i]) - {kd} * qdot[i], -limit[i], limit[i]) with fresh q, qdot; desired joint velocity 0, no feed-forward torque", dt = c.physics_dt_s, kp = c.kp_nm_per_rad, kd = c.kd_nm_s_per_rad),
-            "on_motor_drivers": "a driver that runs its own PD gets q_des = q_target, dq_des = 0, Kp, Kd as above, tau_ff = 0, and its torque limit set to torque_limits_nm",
-        },
-        "rates": {
-            "physics_dt_s": c.physics_dt_s,
-            "pd_rate_hz": 1.0 / c.physics_dt_s,
-            "decimation": c.decimation,
-            "policy_dt_s": c.policy_dt_s(),
-            "policy_rate_hz": 1.0 / c.policy_dt_s(),
-        },
-        "control_loop": [
+    });
+    add_robot_json(&mut sidecar, config)?;
+    Ok(sidecar)
+}
+
+/// The sidecar's robot sections: joints, action, PD law, rates, control loop.
+fn add_robot_json(sidecar: &mut Value, config: &TrainConfig) -> Result<()> {
+    let env = &config.env;
+    let scene = build_scene(env, config.runner.seed)?;
+    let robot = Robot::new(scene.model.try_clone()?, env.control.clone())?;
+    let names = robot.layout.joint_names.clone();
+    let default_q = robot.default_q_rad;
+    let c = &env.control;
+    let by_name = |vals: &dyn Fn(usize) -> f64| -> serde_json::Map<String, Value> {
+        names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.clone(), json!(vals(i))))
+            .collect()
+    };
+    sidecar["joints"] = json!({
+        "names": &names,
+        "order": "Unitree SDK: FR, FL, RR, RL legs x (hip, thigh, calf); index i of every per-joint array below and of the observation and action",
+        "default_angles_rad": by_name(&|i| default_q[i]),
+        "default_angles_rad_in_order": default_q.to_vec(),
+        "source": format!("keyframe `{}` of {}", c.default_keyframe, env.robot_mjcf),
+        "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
+    });
+    sidecar["action"] = json!({
+        "dim": ACT_DIM,
+        "clip": c.clip_actions,
+        "scale_rad": c.action_scale_rad,
+        "target_law": format!("q_target[i] = default_angles_rad[i] + {s} * clip(a[i], -{k}, {k})   (rad), held for one policy step", s = c.action_scale_rad, k = c.clip_actions),
+        "previous_action": "observation field previous_action = the raw a returned at the previous policy step (before clip and scale)",
+    });
+    sidecar["pd"] = json!({
+        "kp_nm_per_rad": c.kp_nm_per_rad,
+        "kd_nm_s_per_rad": c.kd_nm_s_per_rad,
+        "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
+        "law": format!("every physics step (every {dt} s): tau[i] = clip({kp} * (q_target[i] - q[i]) - {kd} * qdot[i], -limit[i], limit[i]) with fresh q, qdot; desired joint velocity 0, no feed-forward torque", dt = c.physics_dt_s, kp = c.kp_nm_per_rad, kd = c.kd_nm_s_per_rad),
+        "on_motor_drivers": "a driver that runs its own PD gets q_des = q_target, dq_des = 0, Kp, Kd as above, tau_ff = 0, and its torque limit set to torque_limits_nm",
+    });
+    sidecar["rates"] = json!({
+        "physics_dt_s": c.physics_dt_s,
+        "pd_rate_hz": 1.0 / c.physics_dt_s,
+        "decimation": c.decimation,
+        "policy_dt_s": c.policy_dt_s(),
+        "policy_rate_hz": 1.0 / c.policy_dt_s(),
+    });
+    sidecar["control_loop"] = json!([
             format!("at {:.0} Hz: read the trunk state (body-frame linear and angular velocity, orientation) and the 12 joint angles and velocities", 1.0 / c.policy_dt_s()),
             "build obs (1 x 48) field by field as in `observation` (scale, then clip), with previous_action = the raw network output of the previous step (zeros at start)",
             "a = onnx(obs)[0]  (12 raw values); keep a for the next observation",
             "q_target = default_angles_rad + scale_rad * clip(a, -clip, clip)",
             format!("until the next policy step, every {} s: tau = clip(kp (q_target - q) - kd qdot, +-torque limit), sent to the motors in `joints.names` order", c.physics_dt_s),
-        ],
-        "reference": {
-            "description": format!("{} noise-free observations along a rollout of this policy on flat ground in rall (every 10th policy step), with the actions rall computes for them; a runtime feeding `observations` as one batch must return `actions` within the tolerance", ref_obs.len() / OBS_DIM),
-            "tolerance_abs": REFERENCE_TOLERANCE,
-            "observations": rows(&ref_obs, OBS_DIM),
-            "actions": rows(&ref_act, ACT_DIM),
-        },
-    });
-    let mut sidecar = sidecar;
-    if let PolicyNet::Student { history_steps, .. } = &net {
-        let h = *history_steps;
-        sidecar["history"] = json!({
-            "input": HISTORY_INPUT,
-            "steps": h,
-            "width": h * OBS_DIM,
-            "order": "newest first: values [48 k, 48 (k + 1)) are the obs of k policy steps ago; slot 0 is this step's obs (the same values fed as `obs`)",
-            "update": "each policy step, after building obs: history = [obs, history without its last 48 values]",
-            "reset": "all zeros at the start of an episode, before the first update",
-        });
-        sidecar["reference"]["history"] = json!(rows(&ref_hist, h * OBS_DIM));
-        if let Some(steps) = sidecar["control_loop"].as_array_mut() {
-            steps.insert(
-                2,
-                json!(format!("update history (1 x {}) as in `history` (zeros after a reset), then a = onnx(obs, history)[0]", h * OBS_DIM)),
-            );
-        }
-    }
+        ]);
+    Ok(())
+}
 
-    let metadata = vec![
+/// A student's `history` input in the sidecar, its references and its control-loop step.
+fn add_history_json(sidecar: &mut Value, h: usize, history: &[f32]) {
+    sidecar["history"] = json!({
+        "input": HISTORY_INPUT,
+        "steps": h,
+        "width": h * OBS_DIM,
+        "order": "newest first: values [48 k, 48 (k + 1)) are the obs of k policy steps ago; slot 0 is this step's obs (the same values fed as `obs`)",
+        "update": "each policy step, after building obs: history = [obs, history without its last 48 values]",
+        "reset": "all zeros at the start of an episode, before the first update",
+    });
+    sidecar["reference"]["history"] = json!(json_rows(history, h * OBS_DIM));
+    if let Some(steps) = sidecar["control_loop"].as_array_mut() {
+        steps.insert(
+            2,
+            json!(format!("update history (1 x {}) as in `history` (zeros after a reset), then a = onnx(obs, history)[0]", h * OBS_DIM)),
+        );
+    }
+}
+
+/// The ONNX model's metadata: where its sidecar is, its iteration, config hash, observation layout.
+fn onnx_metadata(
+    onnx_path: &Path,
+    progress: &Progress,
+    config_hash: &str,
+) -> Vec<(String, String)> {
+    vec![
         (
             "rall.sidecar".to_string(),
             file_name(&sidecar_path(onnx_path)).unwrap_or_default(),
         ),
         ("rall.iteration".to_string(), progress.iteration.to_string()),
-        ("rall.config_hash".to_string(), config_hash.clone()),
+        ("rall.config_hash".to_string(), config_hash.to_string()),
         (
             "rall.obs_layout".to_string(),
             crate::env::observation::layout_string(),
         ),
-    ];
-    let doc = if student {
+    ]
+}
+
+/// The ONNX model's doc string.
+fn model_doc(student: bool) -> &'static str {
+    if student {
         "rall policy (RMA student): obs (batch x 48) and history (batch x H*48, newest first) -> raw actions (batch x 12); see the JSON sidecar for the controller"
     } else {
         "rall policy: obs (batch x 48) -> raw actions (batch x 12); see the JSON sidecar for the controller"
-    };
-    let model = onnx::model(net.graph(), doc, &metadata);
-    let bytes = onnx::encode(&model);
+    }
+}
+
+/// Writes the ONNX file and its sidecar (each atomically); returns the sidecar's path.
+fn write_export_files(onnx_path: &Path, bytes: &[u8], sidecar: &Value) -> Result<PathBuf> {
     if let Some(dir) = onnx_path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    crate::fsio::write_atomic(onnx_path, &bytes)?;
+    crate::fsio::write_atomic(onnx_path, bytes)?;
     let side = sidecar_path(onnx_path);
-    let text = serde_json::to_string_pretty(&sidecar).context("serialising the sidecar")?;
+    let text = serde_json::to_string_pretty(sidecar).context("serialising the sidecar")?;
     crate::fsio::write_atomic(&side, (text + "\n").as_bytes())?;
-    Ok(ExportReport {
-        onnx_path: onnx_path.to_path_buf(),
-        sidecar_path: side,
-        iteration: progress.iteration,
-        config_hash,
-        onnx_bytes: bytes.len(),
-        reference_count: ref_rows.len() / groups.width(),
-    })
+    Ok(side)
 }
 
 fn dims_json(dims: &[Dim]) -> Vec<Value> {

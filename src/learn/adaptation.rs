@@ -6,11 +6,40 @@
 use anyhow::{ensure, Result};
 use rand::seq::SliceRandom;
 use rand::Rng;
+use serde::{Deserialize, Serialize};
 
 use super::adam::{AdamConfig, AdamState};
 use super::layout::gather_columns;
-use super::learner::AdaptationConfig;
 use super::nets::{GaussianActor, MlpCache};
+
+/// RMA phase 2: the adaptation module regresses the encoder's `z` from the
+/// history, on rollouts its own estimate drives through the frozen base policy.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AdaptationConfig {
+    /// Observation group it reads (the proprioceptive history).
+    pub input: String,
+    /// Hidden sizes (ELU) of the MLP over the flattened history (walk-these-ways style).
+    pub hidden: Vec<usize>,
+    /// Phase-2 iterations (each: one rollout of num_envs x steps_per_env, then regression).
+    pub iterations: usize,
+    pub learning_rate: f32,
+    pub epochs: usize,
+    pub mini_batches: usize,
+}
+
+impl Default for AdaptationConfig {
+    fn default() -> Self {
+        AdaptationConfig {
+            input: "history".into(),
+            hidden: vec![256, 128],
+            iterations: 500,
+            learning_rate: 5e-4,
+            epochs: 4,
+            mini_batches: 4,
+        }
+    }
+}
 
 /// Adam over the adaptation parameters, with its own step count.
 #[derive(Clone, Debug, PartialEq)]

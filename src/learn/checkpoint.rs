@@ -10,13 +10,20 @@
 //! before checksums existed (no `sha256.` key at all) still load, unverified
 //! ([`Checkpoint::verified`] is false).
 
-use super::learner::NamedTensor;
 use anyhow::{bail, Context, Result};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+
+/// One named `f32` tensor of the learner state (row-major).
+#[derive(Clone, Debug, PartialEq)]
+pub struct NamedTensor {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
 
 /// Prefix of the checksum keys in the metadata.
 pub const CHECKSUM_PREFIX: &str = "sha256.";

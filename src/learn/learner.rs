@@ -3,7 +3,9 @@
 
 use super::actor_critic::{ActorCritic, Critic};
 use super::adam::AdamState;
+pub use super::adaptation::AdaptationConfig;
 use super::adaptation::{self, adaptation_offset, AdaptationOptimizer, Regression};
+pub use super::checkpoint::NamedTensor;
 use super::collective::{Collective, SingleProcess};
 use super::layout::ObsLayout;
 use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
@@ -46,35 +48,6 @@ impl Default for EncoderConfig {
             input: "privileged".into(),
             hidden: vec![256, 128],
             latent_dim: 8,
-        }
-    }
-}
-
-/// RMA phase 2: the adaptation module regresses the encoder's `z` from the
-/// history, on rollouts its own estimate drives through the frozen base policy.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AdaptationConfig {
-    /// Observation group it reads (the proprioceptive history).
-    pub input: String,
-    /// Hidden sizes (ELU) of the MLP over the flattened history (walk-these-ways style).
-    pub hidden: Vec<usize>,
-    /// Phase-2 iterations (each: one rollout of num_envs x steps_per_env, then regression).
-    pub iterations: usize,
-    pub learning_rate: f32,
-    pub epochs: usize,
-    pub mini_batches: usize,
-}
-
-impl Default for AdaptationConfig {
-    fn default() -> Self {
-        AdaptationConfig {
-            input: "history".into(),
-            hidden: vec![256, 128],
-            iterations: 500,
-            learning_rate: 5e-4,
-            epochs: 4,
-            mini_batches: 4,
         }
     }
 }
@@ -367,14 +340,6 @@ fn normalized_rollout<'a>(
 /// Layout tag of [`Learner::exact_state`] and its length in bytes.
 const EXACT_STATE_TAG: &[u8; 8] = b"rall-ls1";
 const EXACT_STATE_LEN: usize = 8 + 32 + 8 + 16 + 8 + 8;
-
-/// One named `f32` tensor of the learner state (row-major).
-#[derive(Clone, Debug, PartialEq)]
-pub struct NamedTensor {
-    pub name: String,
-    pub shape: Vec<usize>,
-    pub data: Vec<f32>,
-}
 
 /// PPO learner: actor, critic, Adam state, learning rate, update RNG.
 pub struct Learner {

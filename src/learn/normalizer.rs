@@ -7,8 +7,8 @@
 //! mini-batch), and the rollout's observations are merged in after the update.
 //! In a data-parallel run every rank merges the union of all ranks' rollouts.
 
+use super::checkpoint::NamedTensor;
 use super::collective::Collective;
-use super::learner::NamedTensor;
 use anyhow::{ensure, Result};
 
 /// Added to the std before dividing (rsl_rl's `eps`): a column that never

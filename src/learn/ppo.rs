@@ -451,6 +451,32 @@ fn targets(
     }
 }
 
+/// Seconds between the laps of the update's phases.
+struct Stopwatch(Instant);
+
+impl Stopwatch {
+    fn start() -> Stopwatch {
+        Stopwatch(Instant::now())
+    }
+
+    /// Seconds since the last lap.
+    fn lap(&mut self) -> f64 {
+        let now = Instant::now();
+        let dt = (now - self.0).as_secs_f64();
+        self.0 = now;
+        dt
+    }
+}
+
+/// One mini-batch's statistics: this rank's means, then their average over the ranks.
+#[derive(Clone, Copy)]
+struct MiniBatchMeans {
+    kl: f32,
+    policy_loss: f32,
+    clip_fraction: f32,
+    value_loss: f32,
+}
+
 /// One PPO update over a full rollout (this rank's, with `comm` the others').
 #[allow(clippy::too_many_arguments)] // state, buffers, data, settings, randomness, ranks: all distinct
 pub fn update(
@@ -463,33 +489,15 @@ pub fn update(
     rng: &mut impl Rng,
     comm: &dyn Collective,
 ) -> Result<UpdateStats> {
-    r.validate()?;
-    anyhow::ensure!(
-        r.obs_dim == ac.obs_dim() && r.act_dim == ac.act_dim(),
-        "rollout dims ({}, {}) do not match the networks ({}, {})",
-        r.obs_dim,
-        r.act_dim,
-        ac.obs_dim(),
-        ac.act_dim()
-    );
+    check_rollout_fits(ac, r)?;
     let mut time = UpdateTimes::default();
-    let mut clock = Instant::now();
-    // seconds since the last lap
-    let mut lap = || {
-        let now = Instant::now();
-        let dt = (now - clock).as_secs_f64();
-        clock = now;
-        dt
-    };
+    let mut watch = Stopwatch::start();
     let tg = targets(ac, r, cfg, ccfg, &mut ws.targets, rng);
-    time.targets_s += lap();
+    time.targets_s += watch.lap();
     let total = r.num_steps * r.num_envs;
     let n_mb = cfg.num_mini_batches.clamp(1, total);
-    let (od, ad) = (r.obs_dim, r.act_dim);
-    let vt_width = tg.value_targets.len() / total;
     let mut stats = UpdateStats::default();
-    let mut count = 0usize;
-    let mut clipped_steps = 0usize;
+    let (mut count, mut clipped_steps) = (0usize, 0usize);
     let Workspace {
         idx,
         mb,
@@ -498,85 +506,39 @@ pub fn update(
         moments,
         ..
     } = ws;
-    let ranks = comm.ranks();
     idx.clear();
     idx.extend(0..total);
     // one shard per thread: each runs forward, loss and backward of its rows
     // with single-threaded kernels (measured faster than splitting every GEMM)
     shards.resize_with(rayon::current_num_threads().max(1), Shard::default);
-    let global_norm = cfg.normalize_advantage_per_mini_batch && ranks > 1;
+    let global_norm = cfg.normalize_advantage_per_mini_batch && comm.ranks() > 1;
     for _ in 0..cfg.num_learning_epochs {
         idx.shuffle(rng);
         if global_norm {
             // every mini-batch's advantage moments over all ranks: one sum per epoch
-            time.gather_s += lap();
+            time.gather_s += watch.lap();
             advantage_moments(moments, &tg.adv, idx, n_mb, comm);
-            time.comm_s += lap();
+            time.comm_s += watch.lap();
         }
         for k in 0..n_mb {
             let batch = &idx[k * total / n_mb..(k + 1) * total / n_mb];
-            let b = batch.len();
-            gather_into(&mut mb.obs, &r.obs, od, batch);
-            gather_into(&mut mb.actions, &r.actions, ad, batch);
-            gather_into(&mut mb.old_mu, &r.action_mean, ad, batch);
-            gather_into(&mut mb.old_std, &r.action_std, ad, batch);
-            gather_into(&mut mb.old_logp, &r.log_probs, 1, batch);
-            gather_into(&mut mb.adv, &tg.adv, 1, batch);
-            gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
-            let adv = &mut mb.adv;
-            if global_norm {
-                normalize_with(adv, &moments[3 * k..3 * k + 3]);
-            } else if cfg.normalize_advantage_per_mini_batch && b > 1 {
-                let mean = adv.iter().sum::<f32>() / b as f32;
-                let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
-                let inv = 1.0 / (var.sqrt() + 1e-8);
-                adv.iter_mut().for_each(|a| *a = (*a - mean) * inv);
-            }
-            mb.taus.clear();
-            if matches!(ac.critic, Critic::Iqn(_)) {
-                mb.taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
-            }
-            time.gather_s += lap();
+            gather_mini_batch(mb, r, &tg, batch);
+            let global = global_norm.then(|| &moments[3 * k..3 * k + 3]);
+            normalize_advantages(&mut mb.adv, global, cfg.normalize_advantage_per_mini_batch);
+            draw_taus(&mut mb.taus, ac, ccfg, rng);
+            time.gather_s += watch.lap();
 
-            // ---- forward, losses, backward: one shard of rows per thread ----
-            let n_shards = shards.len().min(b);
-            for (s, shard) in shards.iter_mut().enumerate() {
-                shard.rows = s * b / n_shards..((s + 1) * b / n_shards).min(b);
-            }
-            let ac_ref = &*ac;
-            let mb_ref = &*mb;
-            shards.par_iter_mut().for_each(|shard| {
-                serial(|| {
-                    with_precision(cfg.matmul, || {
-                        shard_pass(ac_ref, mb_ref, shard, b, cfg, ccfg)
-                    })
-                })
-            });
-            let (first, rest) = shards.split_at_mut(1);
-            let sh0 = &mut first[0];
-            for other in rest.iter().filter(|s| !s.rows.is_empty()) {
-                add_assign(&mut sh0.g_actor, &other.g_actor);
-                add_assign(&mut sh0.g_critic, &other.g_critic);
-                sh0.kl += other.kl;
-                sh0.policy_loss += other.policy_loss;
-                sh0.clipped += other.clipped;
-                sh0.value_loss += other.value_loss;
-            }
-            // the slowest shard sets the wall time of each phase
-            let phase =
-                |f: fn(&UpdateTimes) -> f64| shards.iter().map(|s| f(&s.time)).fold(0.0, f64::max);
-            time.forward_s += phase(|t| t.forward_s);
-            time.loss_s += phase(|t| t.loss_s);
-            time.backward_s += phase(|t| t.backward_s);
-            lap();
+            let b = batch.len();
+            let mut means = shard_gradients(ac, mb, shards, b, cfg, ccfg, &mut time);
+            watch.lap();
             let sh0 = &mut shards[0];
-            // mini-batch means of this rank, then their average over the ranks
-            let mut kl = (sh0.kl / b as f64) as f32;
-            let mut policy_loss = (sh0.policy_loss / b as f64) as f32;
-            let mut clip_fraction = sh0.clipped as f32 / b as f32;
-            let mut value_loss = sh0.value_loss as f32;
-            if ranks > 1 {
-                let mut stats4 = [kl, policy_loss, clip_fraction, value_loss];
+            if comm.ranks() > 1 {
+                let mut stats4 = [
+                    means.kl,
+                    means.policy_loss,
+                    means.clip_fraction,
+                    means.value_loss,
+                ];
                 average_across_ranks(
                     reduce,
                     &mut sh0.g_actor,
@@ -584,23 +546,17 @@ pub fn update(
                     &mut stats4,
                     comm,
                 );
-                [kl, policy_loss, clip_fraction, value_loss] = stats4;
-                time.comm_s += lap();
+                [
+                    means.kl,
+                    means.policy_loss,
+                    means.clip_fraction,
+                    means.value_loss,
+                ] = stats4;
+                time.comm_s += watch.lap();
             }
-            // entropy bonus: d(-c_e H)/d log_std = -c_e per dimension
-            let off = ac.actor.log_std_offset();
-            for g in &mut sh0.g_actor[off..off + ad] {
-                *g -= cfg.entropy_coef;
-            }
-            if cfg.schedule == LrSchedule::Adaptive {
-                if kl > 2.0 * cfg.desired_kl {
-                    opt.lr = (opt.lr / 1.5).max(cfg.min_lr);
-                } else if kl < cfg.desired_kl / 2.0 && kl > 0.0 {
-                    opt.lr = (opt.lr * 1.5).min(cfg.max_lr);
-                }
-            }
+            add_entropy_bonus(&mut sh0.g_actor, ac, cfg.entropy_coef);
+            adapt_learning_rate(opt, means.kl, cfg);
 
-            // ---- gradient-norm clip ----
             let (sq_a, sq_c) = (sum_sq(&sh0.g_actor), sum_sq(&sh0.g_critic));
             if clip_grads(
                 cfg.grad_clip,
@@ -612,41 +568,183 @@ pub fn update(
             ) {
                 clipped_steps += 1;
             }
-            time.clip_s += lap();
+            time.clip_s += watch.lap();
 
-            let entropy = ac.actor.log_std().iter().sum::<f32>() + ad as f32 * (0.5 + HALF_LN_2PI);
+            let entropy =
+                ac.actor.log_std().iter().sum::<f32>() + r.act_dim as f32 * (0.5 + HALF_LN_2PI);
+            adam_step(ac, opt, cfg, &sh0.g_actor, &sh0.g_critic);
+            time.adam_s += watch.lap();
 
-            // ---- Adam ----
-            opt.step += 1;
-            opt.actor.step(
-                &cfg.adam,
-                opt.lr,
-                opt.step,
-                &mut ac.actor.params.data,
-                &sh0.g_actor,
-            );
-            opt.critic.step(
-                &cfg.adam,
-                opt.lr,
-                opt.step,
-                &mut ac.critic.params_mut().data,
-                &sh0.g_critic,
-            );
-            time.adam_s += lap();
-
-            stats.policy_loss += policy_loss;
-            stats.value_loss += value_loss;
-            stats.entropy += entropy;
-            stats.approx_kl += kl;
-            stats.clip_fraction += clip_fraction;
-            stats.learning_rate_mean += opt.lr;
-            stats.learning_rate_max = stats.learning_rate_max.max(opt.lr);
-            stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
-            stats.actor_grad_norm += sq_a.sqrt() as f32;
-            stats.critic_grad_norm += sq_c.sqrt() as f32;
+            add_mini_batch(&mut stats, &means, entropy, opt.lr, (sq_a, sq_c));
             count += 1;
         }
     }
+    mean_over_mini_batches(&mut stats, count, clipped_steps);
+    stats.learning_rate = opt.lr;
+    stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
+    stats.time = time;
+    Ok(stats)
+}
+
+/// Refuses a rollout that does not fit the networks.
+fn check_rollout_fits(ac: &ActorCritic, r: &Rollout) -> Result<()> {
+    r.validate()?;
+    anyhow::ensure!(
+        r.obs_dim == ac.obs_dim() && r.act_dim == ac.act_dim(),
+        "rollout dims ({}, {}) do not match the networks ({}, {})",
+        r.obs_dim,
+        r.act_dim,
+        ac.obs_dim(),
+        ac.act_dim()
+    );
+    Ok(())
+}
+
+/// The rows `batch` of the rollout and its targets into `mb`.
+fn gather_mini_batch(mb: &mut MiniBatch, r: &Rollout, tg: &Targets, batch: &[usize]) {
+    let (od, ad) = (r.obs_dim, r.act_dim);
+    let vt_width = tg.value_targets.len() / (r.num_steps * r.num_envs);
+    gather_into(&mut mb.obs, &r.obs, od, batch);
+    gather_into(&mut mb.actions, &r.actions, ad, batch);
+    gather_into(&mut mb.old_mu, &r.action_mean, ad, batch);
+    gather_into(&mut mb.old_std, &r.action_std, ad, batch);
+    gather_into(&mut mb.old_logp, &r.log_probs, 1, batch);
+    gather_into(&mut mb.adv, &tg.adv, 1, batch);
+    gather_into(&mut mb.vtarget, &tg.value_targets, vt_width, batch);
+}
+
+/// Advantages to zero mean and unit (unbiased) std: with the global
+/// mini-batch's moments when given (MPI), else this mini-batch's own.
+fn normalize_advantages(adv: &mut [f32], global_moments: Option<&[f64]>, per_mini_batch: bool) {
+    let b = adv.len();
+    if let Some(m) = global_moments {
+        normalize_with(adv, m);
+    } else if per_mini_batch && b > 1 {
+        let mean = adv.iter().sum::<f32>() / b as f32;
+        let var = adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / (b - 1) as f32;
+        let inv = 1.0 / (var.sqrt() + 1e-8);
+        adv.iter_mut().for_each(|a| *a = (*a - mean) * inv);
+    }
+}
+
+/// IQN: the mini-batch's `N` taus ~ U[0, 1] (none for the scalar critic).
+fn draw_taus(taus: &mut Vec<f32>, ac: &ActorCritic, ccfg: &CriticLossConfig, rng: &mut impl Rng) {
+    taus.clear();
+    if matches!(ac.critic, Critic::Iqn(_)) {
+        taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
+    }
+}
+
+/// Forward, losses and backward of the mini-batch's `b` rows, one shard of rows
+/// per thread; the gradients summed into `shards[0]`. Returns this rank's means.
+fn shard_gradients(
+    ac: &ActorCritic,
+    mb: &MiniBatch,
+    shards: &mut [Shard],
+    b: usize,
+    cfg: &PpoConfig,
+    ccfg: &CriticLossConfig,
+    time: &mut UpdateTimes,
+) -> MiniBatchMeans {
+    let n_shards = shards.len().min(b);
+    for (s, shard) in shards.iter_mut().enumerate() {
+        shard.rows = s * b / n_shards..((s + 1) * b / n_shards).min(b);
+    }
+    shards.par_iter_mut().for_each(|shard| {
+        serial(|| with_precision(cfg.matmul, || shard_pass(ac, mb, shard, b, cfg, ccfg)))
+    });
+    let (first, rest) = shards.split_at_mut(1);
+    let sh0 = &mut first[0];
+    for other in rest.iter().filter(|s| !s.rows.is_empty()) {
+        add_assign(&mut sh0.g_actor, &other.g_actor);
+        add_assign(&mut sh0.g_critic, &other.g_critic);
+        sh0.kl += other.kl;
+        sh0.policy_loss += other.policy_loss;
+        sh0.clipped += other.clipped;
+        sh0.value_loss += other.value_loss;
+    }
+    // the slowest shard sets the wall time of each phase
+    let phase = |f: fn(&UpdateTimes) -> f64| shards.iter().map(|s| f(&s.time)).fold(0.0, f64::max);
+    time.forward_s += phase(|t| t.forward_s);
+    time.loss_s += phase(|t| t.loss_s);
+    time.backward_s += phase(|t| t.backward_s);
+    let sh0 = &shards[0];
+    MiniBatchMeans {
+        kl: (sh0.kl / b as f64) as f32,
+        policy_loss: (sh0.policy_loss / b as f64) as f32,
+        clip_fraction: sh0.clipped as f32 / b as f32,
+        value_loss: sh0.value_loss as f32,
+    }
+}
+
+/// Entropy bonus: d(-c_e H)/d log_std = -c_e per dimension.
+fn add_entropy_bonus(g_actor: &mut [f32], ac: &ActorCritic, entropy_coef: f32) {
+    let off = ac.actor.log_std_offset();
+    for g in &mut g_actor[off..off + ac.act_dim()] {
+        *g -= entropy_coef;
+    }
+}
+
+/// rsl_rl's adaptive schedule: `lr /= 1.5` above twice the desired KL, `lr *= 1.5`
+/// below half of it.
+fn adapt_learning_rate(opt: &mut Optimizer, kl: f32, cfg: &PpoConfig) {
+    if cfg.schedule == LrSchedule::Adaptive {
+        if kl > 2.0 * cfg.desired_kl {
+            opt.lr = (opt.lr / 1.5).max(cfg.min_lr);
+        } else if kl < cfg.desired_kl / 2.0 && kl > 0.0 {
+            opt.lr = (opt.lr * 1.5).min(cfg.max_lr);
+        }
+    }
+}
+
+/// One Adam step of actor and critic at the current rate.
+fn adam_step(
+    ac: &mut ActorCritic,
+    opt: &mut Optimizer,
+    cfg: &PpoConfig,
+    g_actor: &[f32],
+    g_critic: &[f32],
+) {
+    opt.step += 1;
+    opt.actor.step(
+        &cfg.adam,
+        opt.lr,
+        opt.step,
+        &mut ac.actor.params.data,
+        g_actor,
+    );
+    opt.critic.step(
+        &cfg.adam,
+        opt.lr,
+        opt.step,
+        &mut ac.critic.params_mut().data,
+        g_critic,
+    );
+}
+
+/// Adds one mini-batch to the update's sums (`(sq_a, sq_c)`: squared gradient
+/// norms of actor and critic before the clip).
+fn add_mini_batch(
+    stats: &mut UpdateStats,
+    m: &MiniBatchMeans,
+    entropy: f32,
+    lr: f32,
+    (sq_a, sq_c): (f64, f64),
+) {
+    stats.policy_loss += m.policy_loss;
+    stats.value_loss += m.value_loss;
+    stats.entropy += entropy;
+    stats.approx_kl += m.kl;
+    stats.clip_fraction += m.clip_fraction;
+    stats.learning_rate_mean += lr;
+    stats.learning_rate_max = stats.learning_rate_max.max(lr);
+    stats.grad_norm += (sq_a + sq_c).sqrt() as f32;
+    stats.actor_grad_norm += sq_a.sqrt() as f32;
+    stats.critic_grad_norm += sq_c.sqrt() as f32;
+}
+
+/// The update's sums over `count` mini-batches divided into means.
+fn mean_over_mini_batches(stats: &mut UpdateStats, count: usize, clipped_steps: usize) {
     let c = count.max(1) as f32;
     stats.policy_loss /= c;
     stats.value_loss /= c;
@@ -658,10 +756,6 @@ pub fn update(
     stats.actor_grad_norm /= c;
     stats.critic_grad_norm /= c;
     stats.clipped_fraction = clipped_steps as f32 / c;
-    stats.learning_rate = opt.lr;
-    stats.mean_std = ac.actor.log_std().iter().map(|l| l.exp()).sum::<f32>() / ac.act_dim() as f32;
-    stats.time = time;
-    Ok(stats)
 }
 
 /// `m <- [sum, sum of squares, count]` of the advantages of each of the `n_mb`
@@ -737,13 +831,7 @@ fn shard_pass(
     cfg: &PpoConfig,
     ccfg: &CriticLossConfig,
 ) {
-    let mut clock = Instant::now();
-    let mut lap = || {
-        let now = Instant::now();
-        let dt = (now - clock).as_secs_f64();
-        clock = now;
-        dt
-    };
+    let mut watch = Stopwatch::start();
     let (od, ad) = (ac.obs_dim(), ac.act_dim());
     let rows = sh.rows.clone();
     let n = rows.len();
@@ -768,9 +856,39 @@ fn shard_pass(
         }
         Critic::Scalar(c) => c.forward(obs, n, &mut sh.scalar_cache),
     }
-    sh.time.forward_s = lap();
+    sh.time.forward_s = watch.lap();
 
     // ---- losses and their output gradients ----
+    surrogate_and_kl(ac, mb, sh, b, cfg);
+    value_loss_and_gradient(ac, mb, vtarget, sh, b, cfg, ccfg);
+    sh.time.loss_s = watch.lap();
+
+    // ---- backward ----
+    ac.actor
+        .backward(&mut sh.g_actor, obs, n, &mut sh.actor_cache, &mut sh.d_mu);
+    let off = ac.actor.log_std_offset();
+    for (g, d) in sh.g_actor[off..off + ad].iter_mut().zip(&sh.d_log_std) {
+        *g += d;
+    }
+    match &ac.critic {
+        Critic::Iqn(c) => c.backward(&mut sh.g_critic, obs, n, &mut sh.iqn_cache, &sh.d_value),
+        Critic::Scalar(c) => c.backward(
+            &mut sh.g_critic,
+            obs,
+            n,
+            &mut sh.scalar_cache,
+            &mut sh.d_value,
+        ),
+    }
+    sh.time.backward_s = watch.lap();
+}
+
+/// The clipped surrogate's sum and its gradients with respect to the mean
+/// and log std of this shard's rows, and the KL(old || new) sum.
+fn surrogate_and_kl(ac: &ActorCritic, mb: &MiniBatch, sh: &mut Shard, b: usize, cfg: &PpoConfig) {
+    let ad = ac.act_dim();
+    let rows = sh.rows.clone();
+    let n = rows.len();
     let mu = sh.actor_cache.output();
     let log_std = ac.actor.log_std();
     sh.std.clear();
@@ -828,6 +946,20 @@ fn shard_pass(
             }
         }
     }
+}
+
+/// The critic's loss on this shard's rows (quantile Huber for IQN, MSE for the
+/// scalar critic) and its gradient with respect to the critic's outputs.
+fn value_loss_and_gradient(
+    ac: &ActorCritic,
+    mb: &MiniBatch,
+    vtarget: &[f32],
+    sh: &mut Shard,
+    b: usize,
+    cfg: &PpoConfig,
+    ccfg: &CriticLossConfig,
+) {
+    let n = sh.rows.len();
     let share = n as f32 / b as f32;
     match &ac.critic {
         Critic::Iqn(_) => {
@@ -850,26 +982,6 @@ fn shard_pass(
             sh.value_loss = loss / b as f64;
         }
     }
-    sh.time.loss_s = lap();
-
-    // ---- backward ----
-    ac.actor
-        .backward(&mut sh.g_actor, obs, n, &mut sh.actor_cache, &mut sh.d_mu);
-    let off = ac.actor.log_std_offset();
-    for (g, d) in sh.g_actor[off..off + ad].iter_mut().zip(&sh.d_log_std) {
-        *g += d;
-    }
-    match &ac.critic {
-        Critic::Iqn(c) => c.backward(&mut sh.g_critic, obs, n, &mut sh.iqn_cache, &sh.d_value),
-        Critic::Scalar(c) => c.backward(
-            &mut sh.g_critic,
-            obs,
-            n,
-            &mut sh.scalar_cache,
-            &mut sh.d_value,
-        ),
-    }
-    sh.time.backward_s = lap();
 }
 
 #[cfg(test)]

@@ -15,7 +15,8 @@ use indicatif::ProgressBar;
 
 use super::metrics::{EpisodeStats, MetricsCsv};
 use super::resume::encode_rank_state;
-use super::train::{log_line, save_both, RunDir, RunLock};
+use super::run_dir::{save_both, RunDir, RunLock};
+use super::status::log_line;
 use super::Progress;
 use crate::config::TrainConfig;
 use crate::env::{ObsGroup, Scene, VecEnv, ACT_DIM};
@@ -125,9 +126,7 @@ pub(super) fn adaptation_phase(
     let mut episodes = Vec::new();
     while progress.iteration < end {
         if stop.load(Ordering::SeqCst) {
-            progress.rank_states =
-                vec![encode_rank_state(envs, obs, &EpisodeStats::default(), None)];
-            let path = save_both(dir, learner, cfg, progress)?;
+            let path = save_phase_two(dir, learner, cfg, progress, envs, obs)?;
             log_line(
                 bar,
                 format!(
@@ -161,39 +160,16 @@ pub(super) fn adaptation_phase(
         progress.wall_s = wall_start.elapsed().as_secs_f64();
         progress.terrain_levels = envs.terrain_levels();
         let stats = EpisodeStats::from_episodes(&episodes, lin_weight_dt);
-        let falls = if stats.episodes > 0 {
-            stats.falls as f64 / stats.episodes as f64
-        } else {
-            0.0
-        };
-        csv.write_line(&format!(
-            "{},{:.3},{},{:.4},{:.4},{:.6},{:.6},{},{:.5},{:.5},{:.4},{:.3}",
-            progress.iteration,
-            progress.wall_s,
-            progress.total_env_steps,
-            collect_s,
-            learn_s,
-            before,
-            mse,
-            stats.episodes,
-            stats.mean_return,
-            stats.lin_tracking_score,
-            falls,
-            envs.mean_terrain_level()
+        let level = envs.mean_terrain_level();
+        let times = (collect_s, learn_s);
+        csv.write_line(&phase_two_csv_row(
+            progress,
+            times,
+            (before, mse),
+            &stats,
+            level,
         ))?;
-        let status = format!(
-            "it {:>5} | phase 2 | {:>7.1} min | collect {:.2}s regress {:.2}s | latent mse {:.5} (before {:.5}) | return {:>7.3} | track {:.3} | falls {}/{}",
-            progress.iteration,
-            progress.wall_s / 60.0,
-            collect_s,
-            learn_s,
-            mse,
-            before,
-            stats.mean_return,
-            stats.lin_tracking_score,
-            stats.falls,
-            stats.episodes
-        );
+        let status = phase_two_status(progress, times, (before, mse), &stats);
         if progress.iteration.is_multiple_of(r.log_interval) {
             log_line(bar, status.clone());
         }
@@ -203,12 +179,75 @@ pub(super) fn adaptation_phase(
             episodes.clear();
         }
         if progress.iteration.is_multiple_of(r.save_interval) || progress.iteration == end {
-            progress.rank_states =
-                vec![encode_rank_state(envs, obs, &EpisodeStats::default(), None)];
-            last = Some(save_both(dir, learner, cfg, progress)?);
+            last = Some(save_phase_two(dir, learner, cfg, progress, envs, obs)?);
         }
     }
     Ok((false, last))
+}
+
+/// Phase 2's checkpoints (its envs' episodes stored for an exact resume).
+fn save_phase_two(
+    dir: &RunDir,
+    learner: &Learner,
+    cfg: &TrainConfig,
+    progress: &mut Progress,
+    envs: &VecEnv,
+    obs: &[f32],
+) -> Result<PathBuf> {
+    progress.rank_states = vec![encode_rank_state(envs, obs, &EpisodeStats::default(), None)];
+    save_both(dir, learner, cfg, progress)
+}
+
+/// One line of `adaptation.csv` (see [`ADAPTATION_HEADER`]).
+fn phase_two_csv_row(
+    progress: &Progress,
+    (collect_s, learn_s): (f64, f64),
+    (before, mse): (f32, f32),
+    stats: &EpisodeStats,
+    terrain_level: f64,
+) -> String {
+    let falls = if stats.episodes > 0 {
+        stats.falls as f64 / stats.episodes as f64
+    } else {
+        0.0
+    };
+    format!(
+        "{},{:.3},{},{:.4},{:.4},{:.6},{:.6},{},{:.5},{:.5},{:.4},{:.3}",
+        progress.iteration,
+        progress.wall_s,
+        progress.total_env_steps,
+        collect_s,
+        learn_s,
+        before,
+        mse,
+        stats.episodes,
+        stats.mean_return,
+        stats.lin_tracking_score,
+        falls,
+        terrain_level
+    )
+}
+
+/// Phase 2's status line.
+fn phase_two_status(
+    progress: &Progress,
+    (collect_s, learn_s): (f64, f64),
+    (before, mse): (f32, f32),
+    stats: &EpisodeStats,
+) -> String {
+    format!(
+        "it {:>5} | phase 2 | {:>7.1} min | collect {:.2}s regress {:.2}s | latent mse {:.5} (before {:.5}) | return {:>7.3} | track {:.3} | falls {}/{}",
+        progress.iteration,
+        progress.wall_s / 60.0,
+        collect_s,
+        learn_s,
+        mse,
+        before,
+        stats.mean_return,
+        stats.lin_tracking_score,
+        stats.falls,
+        stats.episodes
+    )
 }
 
 /// Rewinds the RMA run in `dir` to the end of phase 1 so that phase 2 trains again

@@ -2,12 +2,18 @@
 
 mod adapt;
 pub mod dist;
+mod faults;
+mod job;
 pub mod metrics;
 pub mod policy_file;
 mod resume;
+pub mod run_dir;
+mod setup;
+mod status;
 pub mod train;
 
 pub use adapt::{install_teacher, restart_adaptation};
 pub use dist::World;
 pub use policy_file::{load_policy, load_policy_bytes, save_policy, LoadedPolicy, Progress};
-pub use train::{train, train_in, IterationObserver, PhaseOneOnly, RunDir, TrainSummary, LATEST};
+pub use run_dir::{RunDir, LATEST};
+pub use train::{train, train_in, IterationObserver, PhaseOneOnly, TrainSummary, Trainer};

@@ -150,7 +150,7 @@ pub(super) fn start_envs(
         return Ok(start);
     }
     if let Some(levels) = &progress.terrain_levels {
-        envs.restore_terrain_levels(&super::train::rank_levels(levels, rank, r.num_envs))
+        envs.restore_terrain_levels(&rank_levels(levels, rank, r.num_envs))
             .context("restoring the terrain curriculum of the checkpoint")?;
     }
     if cfg.env.episode.randomize_initial_length {
@@ -163,4 +163,16 @@ pub(super) fn start_envs(
         env_seed,
         action_rng: None,
     })
+}
+
+/// Rank `rank`'s terrain levels from a checkpoint's: its own slice when the
+/// checkpoint holds every rank's (`ranks x num_envs`), else the stored levels
+/// cycled (a checkpoint of another rank count).
+fn rank_levels(stored: &[usize], rank: usize, num_envs: usize) -> Vec<usize> {
+    if stored.is_empty() {
+        return Vec::new();
+    }
+    (0..num_envs)
+        .map(|i| stored[(rank * num_envs + i) % stored.len()])
+        .collect()
 }

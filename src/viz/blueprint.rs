@@ -8,8 +8,6 @@
 //! the builder's blueprint messages before sending them (one blueprint, one
 //! activation, exactly as the builder would).
 
-use std::path::Path;
-
 use anyhow::{Context, Result};
 use rerun::blueprint::components::Eye3DKind;
 use rerun::blueprint::components::PlayState;
@@ -201,18 +199,4 @@ pub fn train_blueprint() -> Layout {
     let eval = Vertical::new([episode_layout(&mut eyes)]).with_name("evaluation episodes");
     let blueprint = Blueprint::new(Tabs::new([metrics.into(), eval.into()])).with_auto_views(false);
     Layout { blueprint, eyes }
-}
-
-/// Writes `blueprint` for `application_id` as an `.rbl` file.
-pub fn write_blueprint_file(
-    path: &Path,
-    application_id: &'static str,
-    layout: Layout,
-) -> Result<()> {
-    let rec = rerun::RecordingStreamBuilder::new(application_id)
-        .blueprint()
-        .save(path)
-        .with_context(|| format!("opening {}", path.display()))?;
-    layout.send(&rec).context("writing the blueprint")?;
-    super::sink::finish_recording(rec)
 }

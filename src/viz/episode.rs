@@ -267,6 +267,96 @@ pub fn body_path(robot: &Robot, b: usize) -> String {
     }
 }
 
+/// Logs the robot's geoms under the bodies that carry them (the world body's
+/// as static ground); returns those bodies with their entity paths, in model order.
+fn log_robot_geoms(rec: &RecordingStream, robot: &Robot) -> Result<Vec<(usize, String)>> {
+    let m = robot.model();
+    // A body welded to its parent (a foot to its calf) moves with it: its geoms are
+    // drawn under the parent, which saves a transform per step.
+    let carriers: Vec<(usize, Pose)> = (0..m.nbody()).map(|b| carrier(m, b)).collect();
+    // Bodies that carry geoms (plus the trunk), in model order; the world body's
+    // ground geoms are logged as terrain.
+    let mut has_geom = vec![false; m.nbody()];
+    for g in 0..m.ngeom() {
+        has_geom[carriers[m.geom_body(g)].0] = true;
+    }
+    has_geom[robot.layout.trunk_body] = true;
+    let bodies: Vec<(usize, String)> = has_geom
+        .iter()
+        .enumerate()
+        .skip(1)
+        .filter(|(_, h)| **h)
+        .map(|(b, _)| (b, body_path(robot, b)))
+        .collect();
+    for g in 0..m.ngeom() {
+        let (b, in_carrier) = carriers[m.geom_body(g)];
+        let geom = in_carrier.then(Pose {
+            pos: m.geom_pos()[g],
+            quat: m.geom_quat()[g],
+        });
+        let Some(prim) =
+            convert::geom_primitive(m.geom_shape(g), m.geom_size()[g], geom.pos, geom.quat)
+        else {
+            continue;
+        };
+        let name = m.name(ObjKind::Geom, g);
+        let name = if name.is_empty() {
+            format!("geom_{g}")
+        } else {
+            name.to_string()
+        };
+        let path = if b == 0 {
+            format!("world/static/{name}")
+        } else {
+            format!("{}/{name}", body_path(robot, b))
+        };
+        log_primitive(rec, &path, &prim, rgba(m.geom_rgba()[g]))?;
+    }
+    Ok(bodies)
+}
+
+/// The static styles of the plots: series names, arrow colours, the quantile bars' taus.
+fn log_plot_styles(rec: &RecordingStream, robot: &Robot, probe: &ValueProbe) -> Result<()> {
+    let series =
+        |names: &[&str]| rerun::SeriesLines::new().with_names(names.iter().map(|s| s.to_string()));
+    for axis in ["vx", "vy", "yaw_rate"] {
+        rec.log_static(
+            format!("plots/velocity/{axis}"),
+            &series(&["command", "measured"]),
+        )?;
+    }
+    let joints: Vec<&str> = robot
+        .layout
+        .joint_names
+        .iter()
+        .map(|s| s.as_str())
+        .collect();
+    rec.log_static("plots/torques", &series(&joints))?;
+    rec.log_static("plots/contacts", &series(&LEGS))?;
+    rec.log_static("value/stats", &series(&["mean", probe.label()]))?;
+    rec.log_static("value/iqr", &series(&["IQR"]))?;
+    // Per-step data carries only what changes: the colours of the velocity
+    // arrows and the taus of the bar chart are static.
+    rec.log_static(
+        "world/velocity",
+        &rerun::Arrows3D::update_fields().with_colors([
+            rerun::Color::from_rgb(40, 200, 60),
+            rerun::Color::from_rgb(60, 120, 240),
+        ]),
+    )?;
+    if !probe.taus().is_empty() {
+        rec.log_static(
+            "value/quantiles",
+            &rerun::BarChart::update_fields()
+                .with_abscissa(rerun::datatypes::TensorData::from(probe.taus().to_vec()))
+                // Bars sit at tau in (0, 1): without widths rerun draws each one
+                // 1 wide and the 32 bars pile into one block over [0, 2].
+                .with_widths(bar_widths(probe.taus())),
+        )?;
+    }
+    Ok(())
+}
+
 impl EpisodeLogger {
     /// Logs the static parts (coordinate frame, geoms, series styles, flat ground) and
     /// returns a logger for the per-step data. `probe` says which taus the quantile bar
@@ -278,48 +368,7 @@ impl EpisodeLogger {
         probe: ValueProbe,
     ) -> Result<EpisodeLogger> {
         rec.log_static("world", &rerun::ViewCoordinates::RIGHT_HAND_Z_UP())?;
-        let m = robot.model();
-        // A body welded to its parent (a foot to its calf) moves with it: its geoms are
-        // drawn under the parent, which saves a transform per step.
-        let carriers: Vec<(usize, Pose)> = (0..m.nbody()).map(|b| carrier(m, b)).collect();
-        // Bodies that carry geoms (plus the trunk), in model order; the world body's
-        // ground geoms are logged as terrain.
-        let mut has_geom = vec![false; m.nbody()];
-        for g in 0..m.ngeom() {
-            has_geom[carriers[m.geom_body(g)].0] = true;
-        }
-        has_geom[robot.layout.trunk_body] = true;
-        let bodies: Vec<(usize, String)> = has_geom
-            .iter()
-            .enumerate()
-            .skip(1)
-            .filter(|(_, h)| **h)
-            .map(|(b, _)| (b, body_path(robot, b)))
-            .collect();
-        for g in 0..m.ngeom() {
-            let (b, in_carrier) = carriers[m.geom_body(g)];
-            let geom = in_carrier.then(Pose {
-                pos: m.geom_pos()[g],
-                quat: m.geom_quat()[g],
-            });
-            let Some(prim) =
-                convert::geom_primitive(m.geom_shape(g), m.geom_size()[g], geom.pos, geom.quat)
-            else {
-                continue;
-            };
-            let name = m.name(ObjKind::Geom, g);
-            let name = if name.is_empty() {
-                format!("geom_{g}")
-            } else {
-                name.to_string()
-            };
-            let path = if b == 0 {
-                format!("world/static/{name}")
-            } else {
-                format!("{}/{name}", body_path(robot, b))
-            };
-            log_primitive(&rec, &path, &prim, rgba(m.geom_rgba()[g]))?;
-        }
+        let bodies = log_robot_geoms(&rec, robot)?;
         log_follow_frame(&rec, &body_path(robot, robot.layout.trunk_body))?;
         if terrain.is_none() {
             log_mesh(
@@ -328,44 +377,7 @@ impl EpisodeLogger {
                 &convert::ground_quad([0.0, 0.0], GROUND_HALF_EXTENT_M),
             )?;
         }
-        let series = |names: &[&str]| {
-            rerun::SeriesLines::new().with_names(names.iter().map(|s| s.to_string()))
-        };
-        for axis in ["vx", "vy", "yaw_rate"] {
-            rec.log_static(
-                format!("plots/velocity/{axis}"),
-                &series(&["command", "measured"]),
-            )?;
-        }
-        let joints: Vec<&str> = robot
-            .layout
-            .joint_names
-            .iter()
-            .map(|s| s.as_str())
-            .collect();
-        rec.log_static("plots/torques", &series(&joints))?;
-        rec.log_static("plots/contacts", &series(&LEGS))?;
-        rec.log_static("value/stats", &series(&["mean", probe.label()]))?;
-        rec.log_static("value/iqr", &series(&["IQR"]))?;
-        // Per-step data carries only what changes: the colours of the velocity
-        // arrows and the taus of the bar chart are static.
-        rec.log_static(
-            "world/velocity",
-            &rerun::Arrows3D::update_fields().with_colors([
-                rerun::Color::from_rgb(40, 200, 60),
-                rerun::Color::from_rgb(60, 120, 240),
-            ]),
-        )?;
-        if !probe.taus().is_empty() {
-            rec.log_static(
-                "value/quantiles",
-                &rerun::BarChart::update_fields()
-                    .with_abscissa(rerun::datatypes::TensorData::from(probe.taus().to_vec()))
-                    // Bars sit at tau in (0, 1): without widths rerun draws each one
-                    // 1 wide and the 32 bars pile into one block over [0, 2].
-                    .with_widths(bar_widths(probe.taus())),
-            )?;
-        }
+        log_plot_styles(&rec, robot, &probe)?;
         let nb = bodies.len();
         let worker = Worker::spawn(
             rec.clone(),

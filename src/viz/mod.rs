@@ -20,12 +20,11 @@ pub mod train;
 pub mod value;
 
 pub use blueprint::{
-    play_blueprint, train_blueprint, write_blueprint_file, Layout, FOLLOWED_ENTITY, PLAY_APP_ID,
-    TRAIN_APP_ID,
+    play_blueprint, train_blueprint, Layout, FOLLOWED_ENTITY, PLAY_APP_ID, TRAIN_APP_ID,
 };
 pub use episode::EpisodeLogger;
 pub use play::{play, run_episode, PlayOptions, PlayReport, PlayedEpisode, ViewerEnv};
 pub use rrd::{summarize_rrd, EntitySummary, RrdSummary};
-pub use sink::{finish_recording, open_recording, RerunTarget};
+pub use sink::{finish_recording, open_recording, write_blueprint_file, RerunTarget};
 pub use train::{TrainRecorder, TrainRecordingOptions};
 pub use value::{ValueProbe, ValueReading};

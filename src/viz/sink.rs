@@ -193,3 +193,17 @@ pub fn finish_recording(rec: RecordingStream) -> Result<()> {
     drop(rec);
     Ok(())
 }
+
+/// Writes `blueprint` for `application_id` as an `.rbl` file.
+pub fn write_blueprint_file(
+    path: &Path,
+    application_id: &'static str,
+    layout: super::blueprint::Layout,
+) -> Result<()> {
+    let rec = rerun::RecordingStreamBuilder::new(application_id)
+        .blueprint()
+        .save(path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    layout.send(&rec).context("writing the blueprint")?;
+    finish_recording(rec)
+}

@@ -1,0 +1,272 @@
+//! A run's directory: where its checkpoints, metrics and config live, which
+//! checkpoint a resume starts from, and the lock that keeps one trainer per run.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+
+use super::policy_file::{load_policy, save_policy, Progress};
+use crate::config::TrainConfig;
+use crate::learn::Learner;
+
+/// Name of the rolling checkpoint in a run directory.
+pub const LATEST: &str = "latest.safetensors";
+
+/// Where a run keeps its files.
+pub struct RunDir {
+    pub root: PathBuf,
+}
+
+impl RunDir {
+    pub fn latest(&self) -> PathBuf {
+        self.root.join(LATEST)
+    }
+    pub fn checkpoint(&self, iteration: usize) -> PathBuf {
+        self.root
+            .join("checkpoints")
+            .join(format!("model_{iteration:06}.safetensors"))
+    }
+    pub fn metrics(&self) -> PathBuf {
+        self.root.join("metrics.csv")
+    }
+
+    /// Removes the temp files a killed or failed write of rall left behind
+    /// (only its own names: a shared folder's other `*.tmp` files stay).
+    pub(super) fn remove_temp_files(&self) {
+        for (d, in_checkpoints) in [
+            (self.root.clone(), false),
+            (self.root.join("checkpoints"), true),
+        ] {
+            let Ok(entries) = std::fs::read_dir(&d) else {
+                continue;
+            };
+            for e in entries.flatten() {
+                let name = e.file_name();
+                let ours = name
+                    .to_str()
+                    .is_some_and(|n| crate::fsio::is_rall_temp(n, in_checkpoints));
+                if ours && e.file_type().is_ok_and(|t| t.is_file()) {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+    }
+
+    /// Numbered checkpoints, newest first.
+    fn numbered_checkpoints(&self) -> Vec<PathBuf> {
+        let mut found = self.checkpoints_by_iteration();
+        found.reverse();
+        found.into_iter().map(|(_, p)| p).collect()
+    }
+
+    /// `checkpoints/model_<iteration>.safetensors`, oldest first, with their iterations.
+    pub fn checkpoints_by_iteration(&self) -> Vec<(usize, PathBuf)> {
+        let mut found: Vec<(usize, PathBuf)> = std::fs::read_dir(self.root.join("checkpoints"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| {
+                let name = e.file_name().into_string().ok()?;
+                let it = name
+                    .strip_prefix("model_")?
+                    .strip_suffix(".safetensors")?
+                    .parse()
+                    .ok()?;
+                Some((it, e.path()))
+            })
+            .collect();
+        found.sort_by_key(|f| f.0);
+        found
+    }
+
+    /// The config of a run stopped before it wrote any checkpoint (nothing to
+    /// resume, but the run can start again), or `None` when it has a checkpoint
+    /// file or no `config.toml`.
+    pub fn config_before_first_checkpoint(&self) -> Result<Option<TrainConfig>> {
+        let stored = self.root.join("config.toml");
+        if self.latest().exists() || !self.numbered_checkpoints().is_empty() || !stored.exists() {
+            return Ok(None);
+        }
+        TrainConfig::from_toml_file(&stored).map(Some)
+    }
+
+    /// The checkpoint to resume from: `latest`, or when it is missing,
+    /// unreadable or corrupt the newest numbered checkpoint that loads intact.
+    /// Says nothing (see [`RunDir::resume_point_noting`]).
+    pub fn resume_point(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
+        self.find_resume_point().map(|f| (f.path, f.loaded))
+    }
+
+    fn find_resume_point(&self) -> Result<Found> {
+        let latest = self.latest();
+        let resumable = |path: &Path| {
+            load_policy(path).and_then(|loaded| {
+                if loaded.actor_only {
+                    anyhow::bail!(
+                        "{} holds the actor alone (an evaluation copy): it cannot be resumed",
+                        path.display()
+                    )
+                }
+                Ok(loaded)
+            })
+        };
+        let latest_err = match resumable(&latest) {
+            Ok(loaded) => {
+                return Ok(Found {
+                    path: latest,
+                    loaded,
+                    passed_over: Vec::new(),
+                })
+            }
+            Err(e) => e,
+        };
+        let mut passed_over = vec![(latest, format!("{latest_err:#}"))];
+        for path in self.numbered_checkpoints() {
+            match resumable(&path) {
+                Ok(loaded) => {
+                    return Ok(Found {
+                        path,
+                        loaded,
+                        passed_over,
+                    })
+                }
+                Err(e) => passed_over.push((path, format!("{e:#}"))),
+            }
+        }
+        Err(latest_err).with_context(|| {
+            format!(
+                "cannot resume {}: no readable checkpoint (latest or checkpoints/model_*)",
+                self.root.display()
+            )
+        })
+    }
+
+    /// [`RunDir::resume_point`] for the run about to resume: says once which
+    /// checkpoint it falls back to and why, and moves the unreadable numbered
+    /// checkpoints it passed over aside (`<name>.corrupt`), so that nothing
+    /// picks them up later.
+    pub(super) fn resume_point_noting(&self) -> Result<(PathBuf, crate::runner::LoadedPolicy)> {
+        let found = self.find_resume_point()?;
+        if let Some((first, why)) = found.passed_over.first() {
+            let mut note = format!(
+                "note: {} is unusable ({why}); resuming from {}",
+                first.display(),
+                found.path.display()
+            );
+            for (p, _) in &found.passed_over[1..] {
+                let mut aside = p.as_os_str().to_owned();
+                aside.push(".corrupt");
+                if std::fs::rename(p, &aside).is_ok() {
+                    note.push_str(&format!(
+                        "; unreadable {} moved to {}",
+                        p.display(),
+                        Path::new(&aside).display()
+                    ));
+                }
+            }
+            eprintln!("{note}");
+        }
+        Ok((found.path, found.loaded))
+    }
+}
+
+/// A resume point and the unusable checkpoints passed over on the way (path, why).
+struct Found {
+    path: PathBuf,
+    loaded: crate::runner::LoadedPolicy,
+    passed_over: Vec<(PathBuf, String)>,
+}
+
+/// Held while a process trains in a run directory: `train.lock` with its pid.
+/// A lock whose process is gone (killed) is taken over.
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    pub fn acquire(root: &Path) -> Result<RunLock> {
+        use std::io::Write as _;
+        let path = root.join("train.lock");
+        for _ in 0..3 {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+            {
+                Ok(mut f) => {
+                    writeln!(f, "{}", std::process::id())
+                        .with_context(|| format!("writing {}", path.display()))?;
+                    return Ok(RunLock { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let holder = std::fs::read_to_string(&path)
+                        .ok()
+                        .and_then(|t| t.trim().parse::<u32>().ok());
+                    if let Some(pid) = holder.filter(|pid| process_alive(*pid)) {
+                        anyhow::bail!(
+                            "{} is being trained by process {pid} ({} holds its pid): wait for it or stop it; remove the file only if that process is not rall",
+                            root.display(),
+                            path.display()
+                        );
+                    }
+                    // left by a process that died (kill -9): take it over
+                    let _ = std::fs::remove_file(&path);
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| format!("creating {}", path.display()));
+                }
+            }
+        }
+        anyhow::bail!("could not take {}", path.display())
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether process `pid` exists and has not exited (Linux /proc; a zombie,
+/// e.g. an MPI rank whose launcher is gone and not yet reaped, is dead).
+fn process_alive(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // "pid (comm) S ...": the state follows the last ')'
+        Ok(stat) => stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.split_whitespace().next())
+            .is_some_and(|state| state != "Z" && state != "X"),
+        Err(_) => false,
+    }
+}
+
+/// Writes the numbered checkpoint and the rolling `latest` one.
+pub(super) fn save_both(
+    dir: &RunDir,
+    learner: &Learner,
+    cfg: &TrainConfig,
+    progress: &Progress,
+) -> Result<PathBuf> {
+    let numbered = dir.checkpoint(progress.iteration);
+    save_policy(&numbered, learner, cfg, progress)?;
+    save_policy(&dir.latest(), learner, cfg, progress)?;
+    Ok(numbered)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_trainer_per_run_directory_and_dead_holders_are_taken_over() {
+        let dir = tempfile::tempdir().unwrap();
+        let lock = RunLock::acquire(dir.path()).unwrap();
+        let e = format!("{:#}", RunLock::acquire(dir.path()).err().unwrap());
+        assert!(e.contains(&std::process::id().to_string()), "{e}");
+        drop(lock);
+        assert!(!dir.path().join("train.lock").exists());
+        // a pid above any pid_max: its holder is gone
+        std::fs::write(dir.path().join("train.lock"), "4294967295\n").unwrap();
+        let _again = RunLock::acquire(dir.path()).unwrap();
+    }
+}
