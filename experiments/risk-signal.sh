@@ -5,12 +5,27 @@
 # checkpoint resumes (exactly) instead of starting again, a finished run is skipped.
 #   bash experiments/risk-signal.sh            # all six
 #   JOBS=1 bash experiments/risk-signal.sh paper-s1 rare-s2
+#   bash experiments/risk-signal.sh --ship     # copy each run's state to policies/risk-signal
+# A run missing from runs/risk-signal starts from its copy in policies/risk-signal.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RALL="${RALL:-target/release/rall}"
 JOBS="${JOBS:-2}"
 ITERATIONS=1500
 declare -A CONFIG=([paper]=configs/rall.toml [dt-scaled]=configs/rall-dt-scaled.toml [rare]=configs/rall-rare.toml)
+SHIPPED=policies/risk-signal
+if [ "${1:-}" = "--ship" ]; then
+  for dir in runs/risk-signal/*/; do
+    run="$(basename "$dir")"
+    [ -f "$dir/latest.safetensors" ] || continue
+    mkdir -p "$SHIPPED/$run"
+    for f in latest.safetensors config.toml metrics.csv; do
+      cp "$dir/$f" "$SHIPPED/$run/$f.tmp" && mv "$SHIPPED/$run/$f.tmp" "$SHIPPED/$run/$f"
+    done
+    echo "shipped $run ($(tail -n 1 "$dir/metrics.csv" | cut -d, -f1) iterations) to $SHIPPED/$run"
+  done
+  exit 0
+fi
 runs=("$@")
 if [ ${#runs[@]} -eq 0 ]; then
   runs=(paper-s1 dt-scaled-s1 rare-s1 paper-s2 dt-scaled-s2 rare-s2)
@@ -19,6 +34,9 @@ mkdir -p runs/risk-signal
 one_run() {
   local run="$1" design="${1%-s*}" seed="${1##*-s}" dir="runs/risk-signal/$1"
   local config="${CONFIG[$design]:?unknown design $design (paper, dt-scaled, rare)}"
+  if [ ! -f "$dir/latest.safetensors" ] && [ -f "$SHIPPED/$run/latest.safetensors" ]; then
+    mkdir -p "$dir" && cp "$SHIPPED/$run/"{latest.safetensors,config.toml,metrics.csv} "$dir/"
+  fi
   if [ -f "$dir/latest.safetensors" ]; then
     "$RALL" train --resume "$dir" --iterations "$ITERATIONS" --threads 1
   else
@@ -28,7 +46,7 @@ one_run() {
   echo "$run: exit $? ($(tail -n 2 "runs/risk-signal/$run.log" | head -n 1 | cut -c1-24))"
 }
 export -f one_run
-export RALL ITERATIONS
+export RALL ITERATIONS SHIPPED
 for run in "${runs[@]}"; do
   echo "$run"
 done | xargs -P "$JOBS" -I{} bash -c "$(declare -p CONFIG); one_run {}"
