@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod calibrate;
+pub mod checkpoint;
 pub mod eval;
 pub mod experiment;
 pub mod export;
@@ -41,6 +42,9 @@ pub enum Command {
     /// Set per-joint risk thresholds from a walking policy's gait (a quantile of |joint
     /// velocity|, |acceleration|, |torque| per joint) and write them into a config.
     CalibrateRisk(calibrate::CalibrateRiskArgs),
+    /// What a checkpoint file holds (iteration, method, checksums, whether it resumes
+    /// exactly), and its actor-only copy for evaluation.
+    Checkpoint(checkpoint::CheckpointArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -53,5 +57,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(args) => export::run(&args),
         Command::Bench(args) => bench::run(&args),
         Command::CalibrateRisk(args) => calibrate::run(&args),
+        Command::Checkpoint(args) => checkpoint::run(&args),
     }
 }

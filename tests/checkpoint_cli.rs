@@ -1,0 +1,112 @@
+//! `rall checkpoint info | actor-only` on the shipped files.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn rall(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("running rall")
+}
+
+fn stdout(o: &Output) -> String {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+const RUN_STATE: &str = "policies/paper/baseline-s1/latest.safetensors";
+
+#[test]
+fn info_tells_a_run_state_from_an_actor_only_copy() {
+    let dir = tempfile_dir("actor-only");
+    let copy = dir.join("actor.safetensors");
+    let out = stdout(&rall(&["checkpoint", "info", RUN_STATE]));
+    assert!(out.contains("iteration 4500"), "{out}");
+    assert!(out.contains("scalar critic"), "{out}");
+    assert!(out.contains("checksums verified"), "{out}");
+    assert!(out.contains("resumes bit for bit"), "{out}");
+
+    let out = stdout(&rall(&[
+        "checkpoint",
+        "actor-only",
+        "--checkpoint",
+        RUN_STATE,
+        "--out",
+        copy.to_str().unwrap(),
+    ]));
+    assert!(
+        out.contains("actor only: evaluates, never resumes"),
+        "{out}"
+    );
+    let full = std::fs::metadata(Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE))
+        .unwrap()
+        .len();
+    let small = std::fs::metadata(&copy).unwrap().len();
+    assert!(small * 4 < full, "actor-only {small} B against {full} B");
+
+    // the copy acts exactly like the run state it was cut from
+    let a =
+        rall::runner::load_policy(&Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE)).unwrap();
+    let b = rall::runner::load_policy(&copy).unwrap();
+    assert!(b.actor_only && !a.actor_only);
+    let names = |s: &[rall::learn::NamedTensor]| -> Vec<(String, Vec<f32>)> {
+        s.iter()
+            .filter(|t| t.name.starts_with("actor."))
+            .map(|t| (t.name.clone(), t.data.clone()))
+            .collect()
+    };
+    assert_eq!(names(&a.learner.state()), names(&b.learner.state()));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bad_input_is_named() {
+    let o = rall(&["checkpoint", "info", "no/such/file.safetensors"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no/such/file.safetensors"), "{err}");
+
+    let o = rall(&[
+        "checkpoint",
+        "actor-only",
+        "--checkpoint",
+        RUN_STATE,
+        "--out",
+        RUN_STATE,
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("is the checkpoint itself"), "{err}");
+
+    // nor any other file that still resumes a run
+    let dir = tempfile_dir("full");
+    let other = dir.join("latest.safetensors");
+    std::fs::copy(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE),
+        &other,
+    )
+    .unwrap();
+    let before = std::fs::read(&other).unwrap();
+    let o = rall(&[
+        "checkpoint",
+        "actor-only",
+        "--checkpoint",
+        RUN_STATE,
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("already holds a full checkpoint"), "{err}");
+    assert_eq!(std::fs::read(&other).unwrap(), before);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A fresh folder of this test process for one test.
+fn tempfile_dir(test: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("rall-checkpoint-cli-{}-{test}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
