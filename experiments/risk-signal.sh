@@ -5,7 +5,8 @@
 # checkpoint resumes (exactly) instead of starting again, a finished run is skipped.
 #   bash experiments/risk-signal.sh            # all six
 #   JOBS=1 bash experiments/risk-signal.sh paper-s1 rare-s2
-#   bash experiments/risk-signal.sh --ship     # copy each run's state to policies/risk-signal
+#   bash experiments/risk-signal.sh --ship     # each run's state (and its checkpoints 1100-1500,
+#                                              # actor-only) to policies/risk-signal
 # A run missing from runs/risk-signal starts from its copy in policies/risk-signal.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,6 +22,15 @@ if [ "${1:-}" = "--ship" ]; then
     mkdir -p "$SHIPPED/$run"
     for f in latest.safetensors config.toml metrics.csv; do
       cp "$dir/$f" "$SHIPPED/$run/$f.tmp" && mv "$SHIPPED/$run/$f.tmp" "$SHIPPED/$run/$f"
+    done
+    # the five checkpoints the pilot judges a run on, actor-only (evaluation needs no more)
+    for it in 1100 1200 1300 1400 1500; do
+      ckpt="$(printf '%s/checkpoints/model_%06d.safetensors' "$dir" "$it")"
+      copy="$SHIPPED/$run/checkpoints/$(basename "$ckpt")"
+      if [ -f "$ckpt" ] && [ ! -f "$copy" ]; then
+        mkdir -p "$SHIPPED/$run/checkpoints"
+        "$RALL" checkpoint actor-only --checkpoint "$ckpt" --out "$copy" >/dev/null
+      fi
     done
     echo "shipped $run ($(tail -n 1 "$dir/metrics.csv" | cut -d, -f1) iterations) to $SHIPPED/$run"
   done
