@@ -16,8 +16,8 @@
 //! - `export`, `viz`, `config`, `cli`: ONNX and its sidecar; rerun recordings; the run
 //!   config; the subcommands. (These need the default `sim` feature.)
 //!
-//! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
-//! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
+//! `unsafe` is refused everywhere but in `sim`, the audited GEMM, AMX and
+//! AVX512-BF16 kernels (`learn::mat::gemm`, `learn::amx`, `learn::bf16_avx512`) and the process's allocator
 //! ([`memory`]): each carries an explicit allow.
 #![deny(unsafe_code)]
 

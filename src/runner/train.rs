@@ -425,10 +425,10 @@ pub fn train_in(
         let (learner, progress) = fresh_start(&cfg)?;
         (cfg, learner, progress)
     };
-    if root && cfg.learner.ppo.matmul == crate::learn::mat::Precision::Bf16 {
+    if root && cfg.learner.ppo.matmul != crate::learn::mat::Precision::F32 {
         println!(
             "update matmuls in bf16 (f32 sums): {}",
-            crate::learn::mat::bf16_backend()
+            crate::learn::mat::precision_backend(cfg.learner.ppo.matmul)
         );
     }
     if ranks > 1 {
