@@ -5,6 +5,7 @@ pub mod dist;
 pub mod metrics;
 pub mod policy_file;
 mod resume;
+pub mod scaling;
 pub mod train;
 
 pub use adapt::{install_teacher, restart_adaptation};
