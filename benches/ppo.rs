@@ -5,14 +5,17 @@
 //!
 //! `cargo bench --no-default-features --bench ppo`: first a table of old (gemm 0.15,
 //! AVX2) against new (gemm 0.19, AVX-512 at run time) kernels on 1 and 2 threads,
-//! then criterion's own measurement of each.
+//! then every matmul precision this CPU runs (`f32`; `bf16` on AMX tiles;
+//! `bf16-avx512` on AVX512-BF16) side by side, per GEMM shape of a mini-batch shard
+//! and for a whole update, then criterion's own measurement of each.
 
 /// The allocator the `rall` binary runs with (large buffers on huge pages).
 #[global_allocator]
 static ALLOCATOR: rall::memory::HugePageAlloc = rall::memory::HugePageAlloc;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use rall::learn::mat::{self, gemm, Kernels};
+use rall::learn::bf16_avx512::{learner_shapes, GemmShape};
+use rall::learn::mat::{self, gemm, precision_available, precision_backend, Kernels, Precision};
 use rall::learn::{CriticKind, Learner, LearnerConfig, Rollout};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -140,10 +143,16 @@ fn time_it(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 fn learner(critic: CriticKind) -> (Learner, Rollout, f64) {
-    let cfg = LearnerConfig {
+    learner_at(critic, Precision::F32)
+}
+
+/// A default learner whose update runs its matrix products at `matmul`.
+fn learner_at(critic: CriticKind, matmul: Precision) -> (Learner, Rollout, f64) {
+    let mut cfg = LearnerConfig {
         critic,
         ..LearnerConfig::default()
     };
+    cfg.ppo.matmul = matmul;
     let learner = Learner::new(OBS, ACT, &cfg, 0).unwrap();
     let r = rollout(&learner);
     let flops = update_flops(&cfg);
@@ -238,8 +247,140 @@ fn summary() {
     }
 }
 
+/// The matmul precisions this CPU runs natively (named as in the config), and a
+/// line for each one it does not.
+fn precisions() -> Vec<(&'static str, Precision)> {
+    let all = [
+        ("f32", Precision::F32),
+        ("bf16-amx", Precision::Bf16),
+        ("bf16-avx512", Precision::Bf16Avx512),
+    ];
+    all.into_iter()
+        .filter(|&(name, p)| {
+            let ok = precision_available(p);
+            if !ok {
+                println!("{name}: not measured ({})", precision_backend(p));
+            }
+            ok
+        })
+        .collect()
+}
+
+/// Operands and output of one GEMM shape.
+struct ShapeData {
+    s: GemmShape,
+    a: Vec<f32>,
+    b: Vec<f32>,
+    c: Vec<f32>,
+}
+
+fn shape_data(rows: usize) -> Vec<ShapeData> {
+    let value = |i: usize, p: usize| ((i * p) % 1000) as f32 / 1000.0 - 0.5;
+    learner_shapes(rows, OBS, ACT)
+        .into_iter()
+        .map(|s| ShapeData {
+            a: (0..s.m * s.k).map(|i| value(i, 7919)).collect(),
+            b: (0..s.k * s.n).map(|i| value(i, 104_729)).collect(),
+            c: vec![0.0; s.m * s.n],
+            s,
+        })
+        .collect()
+}
+
+/// One GEMM on the calling thread at `p` (as a PPO shard runs it).
+fn run_shape(d: &mut ShapeData, p: Precision) {
+    let s = d.s;
+    mat::with_precision(p, || {
+        mat::serial(|| gemm(s.m, s.n, s.k, &d.a, s.a_t, &d.b, s.b_t, &mut d.c, false))
+    });
+}
+
+/// Median seconds of `reps` runs of `f` after one warm-up.
+fn median_s(reps: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t0 = Instant::now();
+            f();
+            t0.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[reps / 2]
+}
+
+/// Every precision side by side: each GEMM shape of one 768-row shard (one thread,
+/// interleaved per shape), then one whole update per critic on 1 and 2 threads.
+fn precision_summary(paths: &[(&'static str, Precision)]) {
+    println!("GEMM shapes of one 768-row shard, one thread, medians of 51 calls (us, GFLOP/s):");
+    let mut total = vec![0.0; paths.len()];
+    for d in &mut shape_data(768) {
+        let flop = 2.0 * (d.s.m * d.s.n * d.s.k) as f64;
+        let mut line = format!("  {:26} {:4} x {:3} x {:4}:", d.s.what, d.s.m, d.s.n, d.s.k);
+        for (i, &(name, p)) in paths.iter().enumerate() {
+            let t = median_s(51, || run_shape(d, p));
+            total[i] += t;
+            line += &format!(" {name} {:7.1} ({:4.0})", t * 1e6, flop / t / 1e9);
+        }
+        println!("{line}");
+    }
+    for (i, &(name, _)) in paths.iter().enumerate() {
+        println!(
+            "  all shapes, {name}: {:.2} ms, {:.2}x f32",
+            total[i] * 1e3,
+            total[0] / total[i]
+        );
+    }
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut line = format!("update ({critic:?}, {threads} threads):");
+            let mut first = 0.0;
+            for &(name, p) in paths {
+                let (mut l, r, flops) = learner_at(critic, p);
+                let t = pool.install(|| {
+                    time_it(2, || {
+                        black_box(l.update(&r).unwrap());
+                    })
+                });
+                if first == 0.0 {
+                    first = t;
+                }
+                line += &format!(
+                    " {name} {:.0} ms ({:.0} GFLOP/s, {:.2}x f32)",
+                    t * 1e3,
+                    flops / t / 1e9,
+                    first / t
+                );
+            }
+            println!("{line}");
+        }
+    }
+}
+
 fn bench(c: &mut Criterion) {
     summary();
+    let paths = precisions();
+    precision_summary(&paths);
+    let mut g = c.benchmark_group("gemm_shard");
+    g.sample_size(20)
+        .measurement_time(Duration::from_secs(3))
+        .warm_up_time(Duration::from_secs(1));
+    let mut shapes = shape_data(768);
+    let flops: f64 = shapes
+        .iter()
+        .map(|d| 2.0 * (d.s.m * d.s.n * d.s.k) as f64)
+        .sum();
+    g.throughput(Throughput::Elements(flops as u64));
+    for &(name, p) in &paths {
+        g.bench_function(format!("all_shapes_768_rows_{name}"), |b| {
+            b.iter(|| shapes.iter_mut().for_each(|d| run_shape(d, p)))
+        });
+    }
+    g.finish();
     let mut g = c.benchmark_group("ppo");
     g.sample_size(10)
         .measurement_time(Duration::from_secs(8))
@@ -254,6 +395,12 @@ fn bench(c: &mut Criterion) {
             });
         }
         mat::set_kernels(Kernels::Auto);
+        for &(name, p) in paths.iter().filter(|(_, p)| *p != Precision::F32) {
+            let (mut learner, r, _) = learner_at(critic, p);
+            g.bench_function(format!("update_{critic:?}_{name}").to_lowercase(), |b| {
+                b.iter(|| black_box(learner.update(&r).unwrap()))
+            });
+        }
     }
     g.finish();
 }

@@ -20,8 +20,8 @@
 //! - `sim`: `data`, `error`, `ffi` (bindgen), `model`, `shim` (guarded MuJoCo calls).
 //! - `robot`: `layout` (parts by name), `params` (randomisable values), `pd` (torques),
 //!   `standing` (the standing check).
-//! - `learn`: `actor_critic`, `nets` (MLP and IQN with hand-written backward), `mat` and
-//!   `amx` (kernels), `adam`, `ppo` (the update), `storage` (rollout, GAE, IQN targets),
+//! - `learn`: `actor_critic`, `nets` (MLP and IQN with hand-written backward), `mat`,
+//!   `amx` and `bf16_avx512` (kernels), `adam`, `ppo` (the update), `storage` (rollout, GAE, IQN targets),
 //!   `risk` (distortions, quantile Huber), `normalizer`, `adaptation` (RMA phase 2),
 //!   `layout` (observation groups), `checkpoint` (safetensors), `collective` (sums across
 //!   ranks), `learner` (the facade the runner calls).
@@ -39,9 +39,9 @@
 //! - `export`: `onnx` (the protobuf subset); `viz`: `episode`, `play`, `train`, `value`,
 //!   `blueprint`, `sink`, `rrd`, `convert`; `cli`: one file per subcommand.
 //!
-//! `unsafe` is refused everywhere but in `sim`, the audited GEMM and AMX
-//! wrappers (`learn::mat::gemm`, `learn::amx`) and the process's allocator
-//! ([`memory`]): each carries an explicit allow.
+//! `unsafe` is refused everywhere but in `sim`, the audited GEMM, AMX and
+//! AVX512-BF16 kernels (`learn::mat::gemm`, `learn::amx`, `learn::bf16_avx512`) and the
+//! process's allocator ([`memory`]): each carries an explicit allow.
 #![deny(unsafe_code)]
 
 /// The allocator the `rall` binary and the benchmarks install

@@ -328,3 +328,75 @@ fn a_bf16_update_tracks_the_f32_one() {
         }
     }
 }
+
+/// `matmul = "bf16-avx512"`: three updates with the products on AVX512-BF16 stay
+/// close to three f32 updates (acting is f32 either way). On a CPU without the
+/// instructions the setting falls back to f32, bit for bit, and the test says so.
+#[test]
+fn a_few_bf16_avx512_updates_track_f32() {
+    use rall::learn::mat::{precision_available, precision_backend, Precision};
+    use rall::learn::{LrSchedule, PpoConfig};
+    let obs: Vec<f32> = (0..4 * 48)
+        .map(|i| ((i * 37) % 17) as f32 / 8.5 - 1.0)
+        .collect();
+    let dist = |a: &[f32], b: &[f32]| -> f32 {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).powi(2))
+            .sum::<f32>()
+            .sqrt()
+    };
+    let native = precision_available(Precision::Bf16Avx512);
+    if !native {
+        eprintln!(
+            "no AVX512-BF16 on this CPU: bf16-avx512 runs {}; checking the fallback only",
+            precision_backend(Precision::Bf16Avx512)
+        );
+    }
+    for critic in [CriticKind::Iqn, CriticKind::Scalar] {
+        let run = |matmul: Precision| {
+            let ppo = PpoConfig {
+                matmul,
+                schedule: LrSchedule::Fixed,
+                learning_rate: 1e-3,
+                ..PpoConfig::default()
+            };
+            let (mut learner, r) =
+                small_learner_and_rollout(critic, ppo, 6, |rng| rng.gen_range(-1.0..1.0));
+            let before = learner.act_mean(&obs);
+            let stats: Vec<_> = (0..3).map(|_| learner.update(&r).unwrap()).collect();
+            (before, stats, learner.act_mean(&obs))
+        };
+        let (before32, s32, after32) = run(Precision::F32);
+        let (before16, s16, after16) = run(Precision::Bf16Avx512);
+        assert_eq!(before32, before16, "{critic:?}: acting is f32 either way");
+        let (moved, apart) = (dist(&after32, &before32), dist(&after16, &after32));
+        if !native {
+            assert_eq!(apart, 0.0, "{critic:?}: the fallback is not f32");
+            continue;
+        }
+        assert!(
+            moved > 0.0,
+            "{critic:?}: the updates did not move the policy"
+        );
+        assert!(apart > 0.0, "{critic:?}: bf16-avx512 ran the f32 kernels");
+        assert!(
+            apart < 0.1 * moved,
+            "{critic:?}: bf16 {apart} from f32, moved {moved}"
+        );
+        for (u, (a, b)) in s16.iter().zip(&s32).enumerate() {
+            assert!(
+                (a.value_loss - b.value_loss).abs() <= 0.02 * b.value_loss.abs() + 1e-6,
+                "{critic:?} update {u}: value loss {} vs {}",
+                a.value_loss,
+                b.value_loss
+            );
+            assert!(
+                (a.policy_loss - b.policy_loss).abs() <= 0.05 * b.policy_loss.abs() + 1e-3,
+                "{critic:?} update {u}: policy loss {} vs {}",
+                a.policy_loss,
+                b.policy_loss
+            );
+        }
+    }
+}

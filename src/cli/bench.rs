@@ -1,5 +1,7 @@
 //! `rall bench env`: size runs on your own workstation. `rall bench comm`
 //! (under mpirun): what the data-parallel update's sums cost on your network.
+//! `rall bench scaling`: where an iteration's time goes on 1 and 2 threads, and
+//! its projection to more cores (`runner::scaling`).
 
 use anyhow::Result;
 use clap::{Args, Subcommand, ValueEnum};
@@ -25,6 +27,31 @@ pub enum BenchCommand {
     /// Under `mpirun -np N`: time of the update's all-reduces (the learner's
     /// gradient size from a config) and their projected cost at 16 and 64 ranks.
     Comm(CommBenchArgs),
+    /// Training iterations of a config on 1 and 2 threads, phase by phase, and a
+    /// projection to more cores (Amdahl per phase; the assumptions are printed).
+    Scaling(ScalingBenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ScalingBenchArgs {
+    /// Run configuration (envs, steps per env, networks, PPO settings).
+    #[arg(long, default_value = "configs/flat.toml")]
+    pub config: std::path::PathBuf,
+    /// Timed iterations per thread count (after the warm-up ones).
+    #[arg(long, default_value_t = 5)]
+    pub iterations: usize,
+    /// Untimed iterations first.
+    #[arg(long, default_value_t = 2)]
+    pub warmup: usize,
+    /// Core counts to project to.
+    #[arg(long, default_values_t = [16, 64])]
+    pub cores: Vec<usize>,
+    /// Envs per core of the projected machine [default: the config's envs / 2].
+    #[arg(long)]
+    pub envs_per_core: Option<f64>,
+    /// Parallel efficiency per core of the update's GEMMs [default: measured from 1 to 2 threads].
+    #[arg(long)]
+    pub gemm_efficiency: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -70,7 +97,61 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     match &args.what {
         BenchCommand::Env(a) => env(a),
         BenchCommand::Comm(a) => comm(a),
+        BenchCommand::Scaling(a) => scaling(a),
     }
+}
+
+fn scaling(a: &ScalingBenchArgs) -> Result<()> {
+    use crate::runner::scaling::{measure, phases, report, Target};
+    anyhow::ensure!(a.iterations > 0, "--iterations must be at least 1");
+    anyhow::ensure!(a.cores.iter().all(|&c| c > 0), "--cores must be positive");
+    if let Some(e) = a.envs_per_core {
+        anyhow::ensure!(
+            e.is_finite() && e > 0.0,
+            "--envs-per-core must be positive, got {e}"
+        );
+    }
+    if let Some(e) = a.gemm_efficiency {
+        anyhow::ensure!(
+            e.is_finite() && e > 0.0 && e <= 1.0,
+            "--gemm-efficiency must be in (0, 1], got {e}"
+        );
+    }
+    let cfg = TrainConfig::from_toml_file(&a.config)?;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if cores < 2 {
+        eprintln!("warning: {cores} core here: the 2-thread measurement shares it, so the serial fractions read high");
+    }
+    let r = &cfg.runner;
+    println!(
+        "{}: {} envs x {} steps, {} epochs x {} mini-batches, matmul {:?}; {} + {} iterations per thread count",
+        a.config.display(),
+        r.num_envs,
+        r.steps_per_env,
+        cfg.learner.ppo.num_learning_epochs,
+        cfg.learner.ppo.num_mini_batches,
+        cfg.learner.ppo.matmul,
+        a.warmup,
+        a.iterations
+    );
+    let one = measure(&cfg, 1, a.warmup, a.iterations)?;
+    let two = measure(&cfg, 2, a.warmup, a.iterations)?;
+    let measured = phases(&one, &two);
+    let gemm_efficiency = a
+        .gemm_efficiency
+        .unwrap_or_else(|| (one.gemm_s / (2.0 * two.gemm_s).max(1e-12)).min(1.0));
+    let targets: Vec<Target> = [1, 2]
+        .iter()
+        .chain(&a.cores)
+        .map(|&c| Target {
+            cores: c,
+            envs_measured: r.num_envs,
+            envs_per_core: a.envs_per_core.unwrap_or(r.num_envs as f64 / 2.0),
+            gemm_efficiency,
+        })
+        .collect();
+    print!("{}", report(&measured, &targets, r.steps_per_env));
+    Ok(())
 }
 
 fn env(a: &EnvBenchArgs) -> Result<()> {

@@ -10,7 +10,8 @@
 
 use rayon::prelude::*;
 use std::cell::Cell;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};
+use std::time::Instant;
 
 /// Elements per rayon task for element-wise kernels.
 const CHUNK: usize = 16 * 1024;
@@ -27,6 +28,10 @@ pub enum Kernels {
 }
 
 static KERNELS: AtomicU8 = AtomicU8::new(0);
+/// Set inside [`with_gemm_clock`]: [`gemm`] calls inside [`serial`] add their time
+/// to [`SHARD_GEMM_NS`].
+static GEMM_CLOCK: AtomicBool = AtomicBool::new(false);
+static SHARD_GEMM_NS: AtomicU64 = AtomicU64::new(0);
 
 thread_local! {
     /// Set inside [`serial`]: kernels run on the calling thread only.
@@ -45,10 +50,16 @@ pub enum Precision {
     /// Inputs rounded to bf16, products summed in f32, on AMX tiles
     /// ([`super::amx`]); f32 where the CPU has no AMX.
     Bf16,
+    /// Inputs rounded to bf16, products summed in f32 by AVX512-BF16's
+    /// `VDPBF16PS` ([`super::bf16_avx512`]: AMD Zen 4 and later, Intel Cooper
+    /// Lake); f32 where the CPU lacks it. Config value `"bf16-avx512"`.
+    #[serde(rename = "bf16-avx512")]
+    Bf16Avx512,
 }
 
 /// Runs `f` with [`gemm`] at `precision` on the calling thread (the AMX kernels
-/// of [`Precision::Bf16`] are single-threaded).
+/// of [`Precision::Bf16`] are single-threaded; those of
+/// [`Precision::Bf16Avx512`] use rayon's pool outside [`serial`]).
 pub fn with_precision<R>(precision: Precision, f: impl FnOnce() -> R) -> R {
     let was = PRECISION.with(|p| p.replace(precision));
     let out = f();
@@ -58,10 +69,27 @@ pub fn with_precision<R>(precision: Precision, f: impl FnOnce() -> R) -> R {
 
 /// The precision [`Precision::Bf16`] actually gets on this machine (for logs).
 pub fn bf16_backend() -> &'static str {
-    if super::amx::available() {
-        "AMX tiles"
-    } else {
-        "none (no AMX-BF16 here): f32"
+    precision_backend(Precision::Bf16)
+}
+
+/// The kernels `precision` actually runs on this machine (for logs): a bf16
+/// precision whose instructions the CPU lacks falls back to f32, and says so.
+pub fn precision_backend(precision: Precision) -> &'static str {
+    match precision {
+        Precision::F32 => "f32",
+        Precision::Bf16 if super::amx::available() => "AMX tiles",
+        Precision::Bf16 => "none (no AMX-BF16 here): f32",
+        Precision::Bf16Avx512 if super::bf16_avx512::available() => "AVX512-BF16 (VDPBF16PS)",
+        Precision::Bf16Avx512 => "none (no AVX512-BF16 here): f32",
+    }
+}
+
+/// Whether `precision` runs its own kernels on this machine (not the f32 fallback).
+pub fn precision_available(precision: Precision) -> bool {
+    match precision {
+        Precision::F32 => true,
+        Precision::Bf16 => super::amx::available(),
+        Precision::Bf16Avx512 => super::bf16_avx512::available(),
     }
 }
 
@@ -73,6 +101,23 @@ pub fn serial<R>(f: impl FnOnce() -> R) -> R {
     let out = f();
     SERIAL.with(|s| s.set(was));
     out
+}
+
+/// Runs `f` with [`gemm`]'s clock on: every call made inside [`serial`] (the PPO
+/// update's per-thread shards), on any thread, adds its time to a process-wide
+/// sum read by [`take_shard_gemm_s`] (`rall bench scaling`). Off otherwise: the
+/// clock costs one relaxed load per call.
+pub fn with_gemm_clock<R>(f: impl FnOnce() -> R) -> R {
+    let was = GEMM_CLOCK.swap(true, Ordering::Relaxed);
+    let out = f();
+    GEMM_CLOCK.store(was, Ordering::Relaxed);
+    out
+}
+
+/// Seconds of [`gemm`] inside [`serial`] under [`with_gemm_clock`] since the last
+/// call, summed over threads; resets the sum.
+pub fn take_shard_gemm_s() -> f64 {
+    SHARD_GEMM_NS.swap(0, Ordering::Relaxed) as f64 * 1e-9
 }
 
 /// Whether the calling thread is inside [`serial`].
@@ -168,9 +213,31 @@ pub(crate) fn assert_gemm_dims(m: usize, n: usize, k: usize, a: usize, b: usize,
 
 /// `c[m x n] = (accumulate ? c : 0) + op(a)[m x k] * op(b)[k x n]`, all row-major.
 /// `a_t`: `a` is stored as `k x m` (use its transpose); `b_t`: `b` is stored as `n x k`.
+/// Runs the kernels of the calling thread's [`Precision`] (f32 where the CPU lacks
+/// that precision's instructions).
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[f32],
+    a_t: bool,
+    b: &[f32],
+    b_t: bool,
+    c: &mut [f32],
+    accumulate: bool,
+) {
+    let clock = (GEMM_CLOCK.load(Ordering::Relaxed) && is_serial()).then(Instant::now);
+    gemm_at_precision(m, n, k, a, a_t, b, b_t, c, accumulate);
+    if let Some(t0) = clock {
+        SHARD_GEMM_NS.fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+}
+
+/// [`gemm`] without its clock.
 #[allow(clippy::too_many_arguments)]
 #[allow(unsafe_code)]
-pub fn gemm(
+fn gemm_at_precision(
     m: usize,
     n: usize,
     k: usize,
@@ -192,8 +259,14 @@ pub fn gemm(
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if PRECISION.with(|p| p.get()) == Precision::Bf16 && super::amx::available() {
-        return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
+    match PRECISION.with(|p| p.get()) {
+        Precision::Bf16 if super::amx::available() => {
+            return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
+        }
+        Precision::Bf16Avx512 if super::bf16_avx512::available() => {
+            return super::bf16_avx512::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
+        }
+        _ => {}
     }
     let (a_rs, a_cs) = if a_t {
         (1, m as isize)

@@ -44,6 +44,7 @@ pub mod actor_critic;
 pub mod adam;
 pub mod adaptation;
 pub mod amx;
+pub mod bf16_avx512;
 pub mod checkpoint;
 pub mod collective;
 pub mod layout;

@@ -78,8 +78,9 @@ pub struct PpoConfig {
     pub normalize_advantage_per_mini_batch: bool,
     pub adam: AdamConfig,
     /// Precision of the update's matrix products (forward and backward of every
-    /// mini-batch): `f32`, or `bf16` (inputs rounded to bf16, sums in f32) on CPUs
-    /// with AMX tiles. Acting and evaluation stay f32.
+    /// mini-batch): `f32`, or inputs rounded to bf16 with sums in f32, `bf16` on
+    /// AMX tiles or `bf16-avx512` on AVX512-BF16 (f32 on CPUs without them).
+    /// Acting and evaluation stay f32.
     pub matmul: Precision,
 }
 

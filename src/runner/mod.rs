@@ -8,6 +8,7 @@ pub mod metrics;
 pub mod policy_file;
 mod resume;
 pub mod run_dir;
+pub mod scaling;
 mod setup;
 mod status;
 pub mod train;

@@ -50,10 +50,10 @@ pub(super) fn open_run(
         Some(loaded) => resumed_state(world, dir, loaded, &cfg, &path)?,
         None => fresh_state(world, dir, cfg)?,
     };
-    if world.is_root() && cfg.learner.ppo.matmul == crate::learn::mat::Precision::Bf16 {
+    if world.is_root() && cfg.learner.ppo.matmul != crate::learn::mat::Precision::F32 {
         println!(
             "update matmuls in bf16 (f32 sums): {}",
-            crate::learn::mat::bf16_backend()
+            crate::learn::mat::precision_backend(cfg.learner.ppo.matmul)
         );
     }
     if world.size() > 1 {
