@@ -12,6 +12,7 @@
 //! module and the base policy in one graph). An RMA teacher is refused: it reads
 //! privileged values a robot cannot measure.
 
+pub mod deploy;
 pub mod onnx;
 
 use std::path::{Path, PathBuf};
@@ -29,7 +30,7 @@ use crate::runner::{load_policy, Progress};
 use onnx::{Dense, Dim};
 
 /// Version of the sidecar's JSON layout.
-pub const SIDECAR_VERSION: u32 = 1;
+pub const SIDECAR_VERSION: u32 = 2;
 /// Name of the observation input in every exported graph.
 pub const OBS_INPUT: &str = "obs";
 /// Name of the history input of a student's graph.
@@ -467,6 +468,7 @@ fn observation_json(env: &EnvConfig) -> Result<Value> {
             "units": units,
             "definition": definition,
             "training_noise_std_physical_units": noise * o.noise_level,
+            "noise_std_physical_units": noise,
         }));
         offset += len;
     }
@@ -479,6 +481,7 @@ fn observation_json(env: &EnvConfig) -> Result<Value> {
         "order": OBS_LAYOUT.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
         "formula": format!("obs[offset + k] = clip(value[k] * scale[k], -{c}, {c}) as float32, fields concatenated in `order`", c = o.clip),
         "clip": o.clip,
+        "noise_level": o.noise_level,
         "fields": fields,
         "noise": "rall adds Gaussian noise (training_noise_std_physical_units * scale) during training and `rall eval`; on the robot feed the noise-free values, the sensors add their own",
     }))
@@ -639,6 +642,9 @@ pub fn export_learner(
             "default_angles_rad": by_name(&|i| default_q[i]),
             "default_angles_rad_in_order": default_q.to_vec(),
             "source": format!("keyframe `{}` of {}", c.default_keyframe, env.robot_mjcf),
+            "keyframe": c.default_keyframe,
+            "mjcf_actuator_names": deploy::actuator_names(&robot),
+            "mjcf_actuators": "the MJCF `motor` driving joint i is mjcf_actuator_names[i] (the MJCF declares them in this same order); send torque i to it",
             "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
         },
         "action": {
@@ -669,6 +675,7 @@ pub fn export_learner(
             "q_target = default_angles_rad + scale_rad * clip(a, -clip, clip)",
             format!("until the next policy step, every {} s: tau = clip(kp (q_target - q) - kd qdot, +-torque limit), sent to the motors in `joints.names` order", c.physics_dt_s),
         ],
+        "deployment_check": "`trace` below is the check for a deployment loop (observation builder, network, action law, PD, rates): replay it as its `purpose` says; `reference` checks the network alone",
         "reference": {
             "description": format!("{} noise-free observations along a rollout of this policy on flat ground in rall (every 10th policy step), with the actions rall computes for them; a runtime feeding `observations` as one batch must return `actions` within the tolerance", ref_obs.len() / OBS_DIM),
             "tolerance_abs": REFERENCE_TOLERANCE,
@@ -677,6 +684,7 @@ pub fn export_learner(
         },
     });
     let mut sidecar = sidecar;
+    add_deployment(&mut sidecar, learner, config, &robot, student)?;
     if let PolicyNet::Student { history_steps, .. } = &net {
         let h = *history_steps;
         sidecar["history"] = json!({
@@ -730,6 +738,25 @@ pub fn export_learner(
         onnx_bytes: bytes.len(),
         reference_count: ref_rows.len() / groups.width(),
     })
+}
+
+/// The deployment sections and, for a policy reading `obs` alone, the nominal trace.
+fn add_deployment(
+    sidecar: &mut Value,
+    learner: &Learner,
+    config: &TrainConfig,
+    robot: &Robot,
+    student: bool,
+) -> Result<()> {
+    let map = sidecar
+        .as_object_mut()
+        .context("the sidecar is a JSON object")?;
+    map.extend(deploy::deployment_sections(config, robot)?);
+    if !student {
+        let t = deploy::nominal_trace(learner, &config.env, deploy::TRACE_STEPS)?;
+        map.insert("trace".into(), deploy::trace_json(&t, &config.env.control));
+    }
+    Ok(())
 }
 
 fn dims_json(dims: &[Dim]) -> Vec<Value> {
