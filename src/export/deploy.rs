@@ -166,11 +166,15 @@ pub fn nominal_trace(learner: &Learner, training: &EnvConfig, steps: usize) -> R
         t.obs.push(obs[..crate::env::OBS_DIM].to_vec());
         t.actions.push(action.clone());
         t.targets_rad.push(targets.to_vec());
-        let r = env.step(&action, &mut obs, &mut final_obs);
-        anyhow::ensure!(
-            !r.done,
-            "the nominal trace ended at step {step} (the policy fell walking at {TRACE_COMMAND:?} on flat ground)"
-        );
+        if env.step(&action, &mut obs, &mut final_obs).done {
+            // a policy that falls keeps the steps before its fall (the last row is the
+            // step that ended it; the env has reset since, so nothing of it is recorded)
+            t.obs.pop();
+            t.actions.pop();
+            t.targets_rad.pop();
+            eprintln!("note: the nominal trace stops at step {step}: the policy fell walking at {TRACE_COMMAND:?} on flat ground");
+            break;
+        }
         let s = env.state();
         t.torques_nm.push(s.torques_nm.to_vec());
         t.base_lin_vel_body_mps.push(s.base_lin_vel_body_mps);
