@@ -465,7 +465,10 @@ fn the_meta_controller_drives_an_rma_student_beside_a_policy_only_critic() {
     }
     let risky = rall::eval::NamedPolicy::load("eta1", &trained[0]).unwrap();
     let student = rall::eval::NamedPolicy::load("student", &trained[1]).unwrap();
-    assert_eq!(student.learner.latent_source(), LatentSource::Adaptation);
+    assert_eq!(
+        student.critic().unwrap().latent_source(),
+        LatentSource::Adaptation
+    );
     let meta = rall::eval::MetaConfig {
         name: "meta".into(),
         risky: "eta1".into(),

@@ -13,12 +13,13 @@ use crate::eval::{
     NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TrackingReport, TtfOptions,
     FALL_DEFINITION,
 };
+use crate::eval::{is_onnx, Policy};
 use crate::experiment::curves::{
     curve_csv, curve_markdown, platform_point, race_point, ttf_point, CurvePoint, Resampling,
 };
 use crate::experiment::TrackingEstimates;
 use crate::learn::{CriticKind, Distortion};
-use crate::runner::{load_policy, LoadedPolicy, RunDir};
+use crate::runner::{load_policy, Progress, RunDir};
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -46,8 +47,12 @@ pub enum EvalCommand {
 #[derive(Debug, Args)]
 pub struct FallsArgs {
     /// Checkpoint (.safetensors) written by `rall train`; several compare them.
-    #[arg(long, required = true)]
+    #[arg(long, required_unless_present = "onnx")]
     pub checkpoint: Vec<PathBuf>,
+    /// An ONNX policy: refused with the reason (this benchmark reads a critic, which an
+    /// ONNX file does not hold).
+    #[arg(long, value_name = "POLICY.onnx")]
+    pub onnx: Option<PathBuf>,
     /// Robots walking at once.
     #[arg(long, default_value_t = 256)]
     pub robots: usize,
@@ -67,8 +72,9 @@ pub struct FallsArgs {
 /// Options shared by the robustness benchmarks.
 #[derive(Debug, Args)]
 pub struct BenchmarkArgs {
-    /// A policy to evaluate, as NAME=PATH (a checkpoint written by `rall train`); repeat it.
-    /// Each runs with its own checkpoint's observation noise, PD and rewards.
+    /// A policy to evaluate, as NAME=PATH (a checkpoint written by `rall train`, or an ONNX
+    /// policy POLICY.onnx with its JSON sidecar POLICY.json beside it); repeat it. Each runs
+    /// with its own checkpoint's (or sidecar's) observation noise, PD, commands and rewards.
     #[arg(long = "policy", value_name = "NAME=PATH")]
     pub policies: Vec<String>,
     /// Worker threads for the robots (0 = all cores).
@@ -192,8 +198,12 @@ pub struct RaceArgs {
 #[derive(Debug, Args)]
 pub struct TrackingArgs {
     /// Checkpoint (.safetensors) written by `rall train`.
-    #[arg(long, required_unless_present = "run_dir", conflicts_with = "run_dir")]
+    #[arg(long, required_unless_present_any = ["run_dir", "onnx"], conflicts_with_all = ["run_dir", "onnx"])]
     pub checkpoint: Option<PathBuf>,
+    /// An ONNX policy (trained anywhere) with its JSON sidecar POLICY.json beside it
+    /// (see docs/outside-policies.md), instead of a checkpoint.
+    #[arg(long, value_name = "POLICY.onnx", conflicts_with = "run_dir")]
+    pub onnx: Option<PathBuf>,
     /// A tracking curve instead: every numbered checkpoint of this run directory, oldest
     /// first, one line each (and `--curve-csv`).
     #[arg(long, value_name = "DIR")]
@@ -253,6 +263,12 @@ fn falls(a: &FallsArgs) -> Result<()> {
     println!(
         "| checkpoint | iteration | falls | states | Z_0.01 | Z_0.05 | Z_0.25 | Z_0.5 | Z_0.75 | Z_0.95 | IQR |"
     );
+    if let Some(onnx) = &a.onnx {
+        anyhow::bail!(
+            "--onnx {}: `rall eval falls` reads the critic's value distribution before falls, and an ONNX file holds the actor alone; `rall eval tracking --onnx` counts and describes its falls",
+            onnx.display()
+        );
+    }
     println!("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for path in &a.checkpoint {
         let p = load_policy(path)?;
@@ -286,7 +302,8 @@ fn falls(a: &FallsArgs) -> Result<()> {
 /// One checkpoint's tracking episodes under `a`'s settings, with 95% percentile
 /// bootstrap intervals over robots (as `rall experiment` reports them).
 struct Tracked {
-    policy: LoadedPolicy,
+    /// The checkpoint's progress (default for an ONNX policy).
+    progress: Progress,
     report: TrackingReport,
     falls: Vec<FallRecord>,
     mode: ActionMode,
@@ -295,8 +312,18 @@ struct Tracked {
 
 fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
     anyhow::ensure!(a.episodes > 0, "--episodes must be at least 1");
-    let policy = load_policy(checkpoint)?;
-    let mut env = tracking_env(&policy.config.env);
+    let (policy, training_env, progress) = if is_onnx(checkpoint) {
+        let p = NamedPolicy::load("policy", checkpoint)?;
+        (p.policy, p.env, Progress::default())
+    } else {
+        let p = load_policy(checkpoint)?;
+        (
+            Policy::Checkpoint(Box::new(p.learner)),
+            p.config.env,
+            p.progress,
+        )
+    };
+    let mut env = tracking_env(&training_env);
     if let Some(path) = &a.randomization_from {
         let from = TrainConfig::from_toml_file(path)
             .with_context(|| format!("--randomization-from {}", path.display()))?;
@@ -308,7 +335,7 @@ fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
         ActionMode::Mean
     };
     let (report, falls) = evaluate_tracking_with_falls(
-        &policy.learner,
+        &policy,
         &env,
         a.episodes,
         worker_threads(a.threads),
@@ -317,7 +344,7 @@ fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
     )?;
     let estimates = TrackingEstimates::new(&report, 1000, 0.95, |_| a.seed);
     Ok(Tracked {
-        policy,
+        progress,
         report,
         falls,
         mode,
@@ -326,7 +353,7 @@ fn track_checkpoint(a: &TrackingArgs, checkpoint: &Path) -> Result<Tracked> {
 }
 
 fn tracking(a: &TrackingArgs) -> Result<()> {
-    match (&a.checkpoint, &a.run_dir) {
+    match (a.checkpoint.as_ref().or(a.onnx.as_ref()), &a.run_dir) {
         (Some(checkpoint), _) => tracking_one(a, checkpoint),
         (None, Some(dir)) => tracking_curve(a, dir),
         (None, None) => anyhow::bail!("give --checkpoint PATH or --run-dir DIR"),
@@ -364,9 +391,10 @@ fn tracking_curve(a: &TrackingArgs, dir: &Path) -> Result<()> {
     );
     for (_, path) in &checkpoints {
         let Tracked {
-            policy, estimates, ..
+            progress: p,
+            estimates,
+            ..
         } = track_checkpoint(a, path)?;
-        let p = &policy.progress;
         println!(
             "{:>9} {:>10} {:>8.1}  {:<21} {:<21} {:<20}{}",
             p.iteration,
@@ -394,18 +422,25 @@ fn tracking_curve(a: &TrackingArgs, dir: &Path) -> Result<()> {
 
 fn tracking_one(a: &TrackingArgs, checkpoint: &Path) -> Result<()> {
     let Tracked {
-        policy,
+        progress,
         report: r,
         falls,
         mode,
         estimates,
     } = track_checkpoint(a, checkpoint)?;
-    println!(
-        "checkpoint {} (iteration {}, {} env steps)",
-        checkpoint.display(),
-        policy.progress.iteration,
-        policy.progress.total_env_steps
-    );
+    if is_onnx(checkpoint) {
+        println!(
+            "ONNX policy {} (env from its sidecar)",
+            checkpoint.display()
+        );
+    } else {
+        println!(
+            "checkpoint {} (iteration {}, {} env steps)",
+            checkpoint.display(),
+            progress.iteration,
+            progress.total_env_steps
+        );
+    }
     println!("episodes             {} ({:?} actions)", r.episodes, mode);
     if let Some(path) = &a.randomization_from {
         println!("randomisation        of {}", path.display());
@@ -785,10 +820,13 @@ fn race(a: &RaceArgs) -> Result<()> {
             let risky = resolve("RISKY", &m.risky)?;
             let safe = resolve("SAFE", &m.safe)?;
             let rp = policies.iter().find(|p| p.name == risky).expect("resolved");
-            if rp.learner.config().critic != CriticKind::Iqn {
+            let rp = rp
+                .critic()
+                .context("--meta RISKY: the switch reads its critic's IQR")?;
+            if rp.config().critic != CriticKind::Iqn {
                 eprintln!("warning: the RISKY policy {risky} has a scalar critic: its IQR is 0, the meta controller never switches");
             }
-            let risk = rp.learner.config().distortion();
+            let risk = rp.config().distortion();
             if risk != (Distortion::Cvar { eta: 1.0 }) {
                 eprintln!(
                     "note: the RISKY policy {risky} follows {risk:?} (the paper's RISKY is CVaR_1)"

@@ -206,7 +206,7 @@ pub struct PlatformReport {
 /// Runs `n` robots of the platform scenario and judges each drop (with how
 /// each episode ended).
 pub fn platform_outcomes(
-    policy: &crate::learn::Learner,
+    policy: &dyn super::policy::Actor,
     setup: &super::scenario::ScenarioSetup,
     n: usize,
     threads: usize,
@@ -248,7 +248,7 @@ pub fn evaluate_platform(
             for &seed in &opts.seeds {
                 let setup = build_scenario(&spec, &p.env, &opts.params, seed)?;
                 outcomes.extend(platform_outcomes(
-                    &p.learner,
+                    &p.policy,
                     &setup,
                     opts.repeats,
                     opts.threads,

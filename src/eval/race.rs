@@ -14,6 +14,7 @@
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 
+use super::policy::Actor;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{mean, quantile, NamedPolicy, ScenarioRun};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
@@ -374,21 +375,21 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
     let mut by_x = IqrByX::default();
     for _ in 0..max_steps {
         let actions = match driver {
-            Driver::Single(p) => p.learner.act_mean(run.obs()),
+            Driver::Single(p) => p.policy.actions(run.obs())?,
             Driver::Meta { risky, safe, .. } => {
                 // each policy reads its own groups of the shared observation row
                 let risky_obs = relayout_rows(run.obs(), &env_layout, &risky.env.obs_layout())?;
-                let iqr = risky.learner.iqr(&risky_obs);
+                let iqr = risky.critic()?.iqr(&risky_obs);
                 iqrs.extend(iqr.iter().map(|&x| x as f64));
                 let sw = switch.as_mut().expect("meta switch");
                 let use_safe = sw.update(&iqr).to_vec();
                 for (i, (&q, &safe)) in iqr.iter().zip(&use_safe).enumerate() {
                     by_x.add(run.env(i).robot().base_pos_m()[0], q as f64, safe);
                 }
-                let mut a = risky.learner.act_mean(&risky_obs);
+                let mut a = risky.policy.actions(&risky_obs)?;
                 if use_safe.iter().any(|&s| s) {
                     let safe_obs = relayout_rows(run.obs(), &env_layout, &safe.env.obs_layout())?;
-                    let b = safe.learner.act_mean(&safe_obs);
+                    let b = safe.policy.actions(&safe_obs)?;
                     for (i, s) in use_safe.iter().enumerate() {
                         if *s {
                             a[i * ACT_DIM..(i + 1) * ACT_DIM]

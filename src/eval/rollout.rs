@@ -5,29 +5,57 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
+use super::policy::{is_onnx, Actor, OnnxPolicy, Policy};
 use super::scenario::{ScenarioHook, ScenarioSetup};
 use crate::env::{Env, EnvConfig, EpisodeEnd, EpisodeSummary, VecEnv};
 use crate::learn::Learner;
 use crate::runner::load_policy;
 
-/// A policy under evaluation: a name for the tables, its networks, and the env
-/// config it was trained with (observation noise, PD, rewards).
+/// A policy under evaluation: a name for the tables, what acts (a checkpoint's
+/// networks or an ONNX network), and the env config it was trained with
+/// (observation noise, PD, rewards; an ONNX policy's from its sidecar).
 pub struct NamedPolicy {
     pub name: String,
-    pub learner: Learner,
+    pub policy: Policy,
     pub env: EnvConfig,
     pub path: Option<PathBuf>,
 }
 
 impl NamedPolicy {
-    /// Loads a checkpoint written by `rall train`.
+    /// Loads a checkpoint written by `rall train`, or an ONNX policy (`.onnx`,
+    /// its JSON sidecar beside it).
     pub fn load(name: &str, path: &Path) -> Result<NamedPolicy> {
+        if is_onnx(path) {
+            let p = OnnxPolicy::load(path).with_context(|| format!("policy {name}"))?;
+            if !p.defaulted.is_empty() {
+                eprintln!(
+                    "note: policy {name}: the sidecar has no {}; rall's defaults are used",
+                    p.defaulted.join(", ")
+                );
+            }
+            return Ok(NamedPolicy {
+                name: name.to_string(),
+                env: p.env.clone(),
+                policy: Policy::Onnx(Box::new(p)),
+                path: Some(path.to_path_buf()),
+            });
+        }
         let p = load_policy(path).with_context(|| format!("policy {name}"))?;
         Ok(NamedPolicy {
             name: name.to_string(),
-            learner: p.learner,
+            policy: Policy::Checkpoint(Box::new(p.learner)),
             env: p.config.env,
             path: Some(path.to_path_buf()),
+        })
+    }
+
+    /// The checkpoint's learner (critic, Gaussian); an ONNX policy has none.
+    pub fn critic(&self) -> Result<&Learner> {
+        self.policy.learner().with_context(|| {
+            format!(
+                "policy {} is an ONNX network: it has no critic (only a rall checkpoint has one)",
+                self.name
+            )
         })
     }
 
@@ -140,7 +168,7 @@ impl FirstEpisode {
 /// the ground. `observe(i, env, step)` sees every robot after each step of its
 /// first episode that did not end it.
 pub fn run_first_episodes(
-    policy: &Learner,
+    policy: &dyn Actor,
     setup: &ScenarioSetup,
     n: usize,
     threads: usize,
@@ -163,7 +191,7 @@ pub fn run_first_episodes(
         for (c, cmd) in commanded.iter_mut().zip(&commands) {
             *c += cmd[0].hypot(cmd[1]) * dt;
         }
-        let actions = policy.act_mean(run.obs());
+        let actions = policy.actions(run.obs())?;
         for s in run.step(&actions) {
             let i = s.env_index;
             if first[i].is_none() {

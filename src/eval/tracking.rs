@@ -6,10 +6,10 @@ use std::sync::Arc;
 use anyhow::Result;
 use rand::SeedableRng;
 
+use super::policy::Actor;
 use crate::env::config::{PushConfig, RandomizationConfig};
 use crate::env::terrain::TerrainKind;
 use crate::env::{build_scene, EnvConfig, EpisodeDraw, EpisodeEnd, VecEnv};
-use crate::learn::Learner;
 
 /// One robot's share of the tracking figures: the unit a bootstrap resamples.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -96,7 +96,7 @@ pub enum ActionMode {
 
 /// Runs `episodes` robots in parallel for one full episode each.
 pub fn evaluate_tracking(
-    learner: &Learner,
+    learner: &dyn Actor,
     env_cfg: &EnvConfig,
     episodes: usize,
     threads: usize,
@@ -207,7 +207,7 @@ impl FallRecord {
 
 /// [`evaluate_tracking`], plus how each robot that fell in its first episode fell.
 pub fn evaluate_tracking_with_falls(
-    learner: &Learner,
+    learner: &dyn Actor,
     env_cfg: &EnvConfig,
     episodes: usize,
     threads: usize,
@@ -227,8 +227,13 @@ pub fn evaluate_tracking_with_falls(
     let mut watch = FallWatch::new(episodes, env_cfg);
     for step in 0..max_steps {
         let actions = match mode {
-            ActionMode::Mean => learner.act_mean(&obs),
-            ActionMode::Sampled => learner.act(&obs, &mut rng).actions,
+            ActionMode::Mean => learner.actions(&obs)?,
+            ActionMode::Sampled => {
+                let gaussian = learner.learner().ok_or_else(|| {
+                    anyhow::anyhow!("sampled actions need a checkpoint's Gaussian; an ONNX policy gives its mean only")
+                })?;
+                gaussian.act(&obs, &mut rng).actions
+            }
         };
         // Score the command each robot followed during this step.
         let commands: Vec<[f64; 3]> = envs.envs().iter().map(|e| e.command()).collect();

@@ -181,7 +181,7 @@ pub fn evaluate_ttf(
                         let setup = build_scenario(&spec, &p.env, &opts.params, seed)?;
                         episode_steps = setup.env.max_episode_steps();
                         per_seed.push(run_first_episodes(
-                            &p.learner,
+                            &p.policy,
                             &setup,
                             opts.repeats,
                             opts.threads,

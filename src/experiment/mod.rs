@@ -450,7 +450,7 @@ fn validation<'a>(
     move |path| {
         let p = NamedPolicy::load(label, path)?;
         let t = evaluate_tracking(
-            &p.learner,
+            &p.policy,
             &tracking_env(&p.env),
             sel.episodes,
             threads,
@@ -655,7 +655,7 @@ fn parse_load(s: &str) -> Result<Load> {
 /// risky critic's IQR over robots walking one episode on flat ground.
 pub fn calibrate_threshold(m: &MetaSpec, risky: &NamedPolicy, threads: usize) -> Result<f32> {
     anyhow::ensure!(
-        risky.learner.config().critic == crate::learn::CriticKind::Iqn,
+        risky.critic()?.config().critic == crate::learn::CriticKind::Iqn,
         "meta.risky = {:?} has a scalar critic: the meta controller needs the IQR of a value distribution (an IQN critic)",
         m.risky
     );
@@ -673,8 +673,9 @@ pub fn calibrate_threshold(m: &MetaSpec, risky: &NamedPolicy, threads: usize) ->
     let mut obs = venv.batch().obs.clone();
     let mut iqrs = Vec::new();
     for _ in 0..cfg.max_episode_steps() {
-        iqrs.extend(risky.learner.iqr(&obs).iter().map(|&v| v as f64));
-        let actions = risky.learner.act_mean(&obs);
+        let critic = risky.critic()?;
+        iqrs.extend(critic.iqr(&obs).iter().map(|&v| v as f64));
+        let actions = critic.act_mean(&obs);
         obs.copy_from_slice(&venv.step(&actions).obs);
     }
     let t = stats::quantile(&iqrs, m.threshold_quantile);
@@ -743,7 +744,7 @@ fn track_all(
         let (p, policy_iteration) = load_final_policy(spec, &r.label)?;
         let track = |env: &EnvConfig| {
             evaluate_tracking(
-                &p.learner,
+                &p.policy,
                 env,
                 spec.tracking.episodes,
                 threads,

@@ -12,6 +12,7 @@
 //! module and the base policy in one graph). An RMA teacher is refused: it reads
 //! privileged values a robot cannot measure.
 
+pub mod deploy;
 pub mod onnx;
 
 use std::path::{Path, PathBuf};
@@ -29,7 +30,7 @@ use crate::runner::{load_policy, Progress};
 use onnx::{Dense, Dim};
 
 /// Version of the sidecar's JSON layout.
-pub const SIDECAR_VERSION: u32 = 1;
+pub const SIDECAR_VERSION: u32 = 2;
 /// Name of the observation input in every exported graph.
 pub const OBS_INPUT: &str = "obs";
 /// Name of the history input of a student's graph.
@@ -467,6 +468,7 @@ fn observation_json(env: &EnvConfig) -> Result<Value> {
             "units": units,
             "definition": definition,
             "training_noise_std_physical_units": noise * o.noise_level,
+            "noise_std_physical_units": noise,
         }));
         offset += len;
     }
@@ -479,6 +481,7 @@ fn observation_json(env: &EnvConfig) -> Result<Value> {
         "order": OBS_LAYOUT.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
         "formula": format!("obs[offset + k] = clip(value[k] * scale[k], -{c}, {c}) as float32, fields concatenated in `order`", c = o.clip),
         "clip": o.clip,
+        "noise_level": o.noise_level,
         "fields": fields,
         "noise": "rall adds Gaussian noise (training_noise_std_physical_units * scale) during training and `rall eval`; on the robot feed the noise-free values, the sensors add their own",
     }))
@@ -564,10 +567,13 @@ pub fn export_learner(
         onnx_path,
         config_hash: &config_hash,
     };
-    let mut sidecar = sidecar_json(&source, config, &reference)?;
+    let scene = build_scene(env, config.runner.seed)?;
+    let robot = Robot::new(scene.model.try_clone()?, env.control.clone())?;
+    let mut sidecar = sidecar_json(&source, config, &robot, &reference)?;
     if let PolicyNet::Student { history_steps, .. } = &net {
         add_history_json(&mut sidecar, *history_steps, &reference.history);
     }
+    add_deployment(&mut sidecar, learner, config, &robot, student)?;
     let metadata = onnx_metadata(onnx_path, progress, &config_hash);
     let model = onnx::model(net.graph(), model_doc(student), &metadata);
     let bytes = onnx::encode(&model);
@@ -668,7 +674,12 @@ struct SidecarSource<'a> {
 
 /// The sidecar: the checkpoint, the graph, the observation, the robot's
 /// joints, action, PD law and rates, the control loop, and the references.
-fn sidecar_json(src: &SidecarSource, config: &TrainConfig, reference: &Reference) -> Result<Value> {
+fn sidecar_json(
+    src: &SidecarSource,
+    config: &TrainConfig,
+    robot: &Robot,
+    reference: &Reference,
+) -> Result<Value> {
     let (net, progress) = (src.net, src.progress);
     let inputs: Vec<Value> = net
         .inputs()
@@ -699,6 +710,7 @@ fn sidecar_json(src: &SidecarSource, config: &TrainConfig, reference: &Reference
         },
         "network": net.describe(),
         "observation": observation_json(&config.env)?,
+        "deployment_check": "`trace` below is the check for a deployment loop (observation builder, network, action law, PD, rates): replay it as its `purpose` says; `reference` checks the network alone",
         "reference": {
             "description": format!("{} noise-free observations along a rollout of this policy on flat ground in rall (every 10th policy step), with the actions rall computes for them; a runtime feeding `observations` as one batch must return `actions` within the tolerance", reference.obs.len() / OBS_DIM),
             "tolerance_abs": REFERENCE_TOLERANCE,
@@ -706,15 +718,13 @@ fn sidecar_json(src: &SidecarSource, config: &TrainConfig, reference: &Reference
             "actions": json_rows(&reference.actions, ACT_DIM),
         },
     });
-    add_robot_json(&mut sidecar, config)?;
+    add_robot_json(&mut sidecar, config, robot)?;
     Ok(sidecar)
 }
 
 /// The sidecar's robot sections: joints, action, PD law, rates, control loop.
-fn add_robot_json(sidecar: &mut Value, config: &TrainConfig) -> Result<()> {
+fn add_robot_json(sidecar: &mut Value, config: &TrainConfig, robot: &Robot) -> Result<()> {
     let env = &config.env;
-    let scene = build_scene(env, config.runner.seed)?;
-    let robot = Robot::new(scene.model.try_clone()?, env.control.clone())?;
     let names = robot.layout.joint_names.clone();
     let default_q = robot.default_q_rad;
     let c = &env.control;
@@ -731,6 +741,9 @@ fn add_robot_json(sidecar: &mut Value, config: &TrainConfig) -> Result<()> {
         "default_angles_rad": by_name(&|i| default_q[i]),
         "default_angles_rad_in_order": default_q.to_vec(),
         "source": format!("keyframe `{}` of {}", c.default_keyframe, env.robot_mjcf),
+        "keyframe": c.default_keyframe,
+        "mjcf_actuator_names": deploy::actuator_names(robot),
+        "mjcf_actuators": "the MJCF `motor` driving joint i is mjcf_actuator_names[i] (the MJCF declares them in this same order); send torque i to it",
         "torque_limits_nm": by_name(&|i| c.torque_limit_nm(i)),
     });
     sidecar["action"] = json!({
@@ -822,6 +835,25 @@ fn write_export_files(onnx_path: &Path, bytes: &[u8], sidecar: &Value) -> Result
     let text = serde_json::to_string_pretty(sidecar).context("serialising the sidecar")?;
     crate::fsio::write_atomic(&side, (text + "\n").as_bytes())?;
     Ok(side)
+}
+
+/// The deployment sections and, for a policy reading `obs` alone, the nominal trace.
+fn add_deployment(
+    sidecar: &mut Value,
+    learner: &Learner,
+    config: &TrainConfig,
+    robot: &Robot,
+    student: bool,
+) -> Result<()> {
+    let map = sidecar
+        .as_object_mut()
+        .context("the sidecar is a JSON object")?;
+    map.extend(deploy::deployment_sections(config, robot)?);
+    if !student {
+        let t = deploy::nominal_trace(learner, &config.env, deploy::TRACE_STEPS)?;
+        map.insert("trace".into(), deploy::trace_json(&t, &config.env.control));
+    }
+    Ok(())
 }
 
 fn dims_json(dims: &[Dim]) -> Vec<Value> {

@@ -10,10 +10,10 @@
 
 use anyhow::{Context, Result};
 use rerun::blueprint::components::Eye3DKind;
-use rerun::blueprint::components::PlayState;
+use rerun::blueprint::components::{PanelState, PlayState};
 use rerun::blueprint::{
-    BarChartView, Blueprint, BlueprintActivation, ContainerLike, Horizontal, Spatial3DView, Tabs,
-    TextLogView, TimePanel, TimeSeriesView, Vertical,
+    BarChartView, Blueprint, BlueprintActivation, BlueprintPanel, ContainerLike, Horizontal,
+    SelectionPanel, Spatial3DView, Tabs, TextLogView, TimePanel, TimeSeriesView, Vertical,
 };
 use rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D;
 use rerun::log::LogMsg;
@@ -33,7 +33,7 @@ fn series(name: &str, origin: &str) -> ContainerLike {
 pub const FOLLOWED_ENTITY: &str = "world/robot/trunk/follow";
 /// Where the eye starts (world, m): behind, to the right of and above the spawn
 /// point, looking at the trunk; it then keeps this offset as the robot walks.
-const EYE_POSITION_M: [f32; 3] = [-1.6, -1.6, 1.1];
+const EYE_POSITION_M: [f32; 3] = [-0.8, -0.8, 0.6];
 const EYE_TARGET_M: [f32; 3] = [0.0, 0.0, 0.3];
 
 /// A viewer layout: the blueprint and the eye of each 3D view (by blueprint path).
@@ -156,6 +156,10 @@ fn episode_layout(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
         Tabs::new([
             series("joint torques (N m)", "plots/torques"),
             series("foot contacts", "plots/contacts"),
+            series(
+                "risk thresholds crossed (term k at k + 0.8)",
+                "plots/risk_crossed",
+            ),
         ])
         .into(),
     ]);
@@ -164,10 +168,19 @@ fn episode_layout(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
         .into()
 }
 
+/// `root` with rerun's blueprint and selection panels collapsed, so the views get
+/// the whole window (the panels open from the viewer's top bar).
+fn collapsed_panels(root: impl Into<ContainerLike>) -> Blueprint {
+    Blueprint::new(root)
+        .with_auto_views(false)
+        .with_blueprint_panel(BlueprintPanel::new().with_state(PanelState::Collapsed))
+        .with_selection_panel(SelectionPanel::new().with_state(PanelState::Collapsed))
+}
+
 /// Layout of `rall play` recordings.
 pub fn play_blueprint() -> Layout {
     let mut eyes = Vec::new();
-    let blueprint = Blueprint::new(episode_layout(&mut eyes)).with_auto_views(false);
+    let blueprint = collapsed_panels(episode_layout(&mut eyes));
     Layout { blueprint, eyes }
 }
 
@@ -197,6 +210,6 @@ pub fn train_blueprint() -> Layout {
     ])
     .with_name("training");
     let eval = Vertical::new([episode_layout(&mut eyes)]).with_name("evaluation episodes");
-    let blueprint = Blueprint::new(Tabs::new([metrics.into(), eval.into()])).with_auto_views(false);
+    let blueprint = collapsed_panels(Tabs::new([metrics.into(), eval.into()]));
     Layout { blueprint, eyes }
 }

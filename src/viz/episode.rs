@@ -14,10 +14,11 @@
 //! | `plots/velocity/{vx,vy,yaw_rate}` | scalars `[command, measured]` (body frame) | every step |
 //! | `plots/torques` | 12 joint torques (N m) | every step |
 //! | `plots/contacts` | foot contact, leg `i` drawn at `i + 0.8 * contact` | every step |
+//! | `plots/risk_crossed` | risk thresholds crossed, term `k` drawn at `k + 0.8 * crossed` | every step |
 //! | `value/quantiles` | `BarChart` of `Z_tau(s)` on a midpoint tau grid, bars `1/n` wide over [0, 1] (IQN only) | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `value/stats` | scalars `[mean, CVaR_eta]` (scalar critic: `[V, V]`) | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `value/iqr` | `Z_0.75(s) - Z_0.25(s)` | every [`VALUE_EVERY_FRAMES`] frames |
-//! | `events` | `TextLog`: episodes, risk-threshold crossings, penalties, pushes | on events |
+//! | `events` | `TextLog`: episodes, fired risk penalties, pushes, falls, command changes | on events |
 //!
 //! Timelines: `sim_time` (seconds of simulated time, continuing across episodes),
 //! `step` (policy steps), plus any extra constant sequence (e.g. `iteration` for
@@ -77,6 +78,8 @@ struct Columns {
     wz: Vec<f64>,
     torques: Vec<f64>,
     contacts: Vec<f64>,
+    /// Per frame and risk term: `k + 0.8 * crossed`.
+    risk_crossed: Vec<f64>,
     arrows_origin: Vec<[f32; 3]>,
     arrows_vec: Vec<[f32; 3]>,
     /// Observations of every [`VALUE_EVERY_FRAMES`]-th frame (k x obs_dim), read by
@@ -162,7 +165,6 @@ pub struct EpisodeLogger {
     /// Frames recorded (the critic is read on every `value_every`-th).
     frames: usize,
     value_every: usize,
-    prev_exceeded: [bool; NUM_RISK_TERMS],
     push_shown: bool,
     prev_base_vel_world: [f64; 3],
 }
@@ -189,8 +191,9 @@ fn log_mesh(rec: &RecordingStream, path: &str, m: &TriMesh) -> Result<()> {
 
 /// Half extents (m, trunk frame) of the box the 3D view's eye frames: rerun's
 /// tracking eye orbits at 1.5x the tracked entity's bounding-sphere radius, so this
-/// box puts the eye about 2.4 m from the trunk, the robot and its surroundings in view.
-const FOLLOW_FRAME_HALF_M: [f32; 3] = [1.2, 0.9, 0.45];
+/// box puts the eye about 1.2 m from the trunk: the robot about a third of the view's
+/// height (at 2.4 m it was a sixth).
+const FOLLOW_FRAME_HALF_M: [f32; 3] = [0.6, 0.45, 0.25];
 
 /// The entity the eye tracks ([`super::blueprint::FOLLOWED_ENTITY`]): the corners of
 /// [`FOLLOW_FRAME_HALF_M`] as zero-radius points in the trunk frame, invisible but
@@ -333,6 +336,11 @@ fn log_plot_styles(rec: &RecordingStream, robot: &Robot, probe: &ValueProbe) -> 
         .collect();
     rec.log_static("plots/torques", &series(&joints))?;
     rec.log_static("plots/contacts", &series(&LEGS))?;
+    let terms: Vec<&str> = crate::env::risk::RISK_TERMS
+        .iter()
+        .map(|t| t.name)
+        .collect();
+    rec.log_static("plots/risk_crossed", &series(&terms))?;
     rec.log_static("value/stats", &series(&["mean", probe.label()]))?;
     rec.log_static("value/iqr", &series(&["IQR"]))?;
     // Per-step data carries only what changes: the colours of the velocity
@@ -403,7 +411,6 @@ impl EpisodeLogger {
             step: 0,
             frames: 0,
             value_every: VALUE_EVERY_FRAMES,
-            prev_exceeded: [false; NUM_RISK_TERMS],
             push_shown: false,
             prev_base_vel_world: [0.0; 3],
         })
@@ -466,7 +473,6 @@ impl EpisodeLogger {
         label: &str,
         obs: &[f32],
     ) -> Result<()> {
-        self.prev_exceeded = [false; NUM_RISK_TERMS];
         self.prev_base_vel_world = base_vel_world(env.robot());
         let c = env.command();
         let d = env.draw;
@@ -526,6 +532,9 @@ impl EpisodeLogger {
         c.torques.extend(s.torques_nm);
         c.contacts
             .extend((0..4).map(|i| i as f64 + 0.8 * s.foot_contact[i] as u8 as f64));
+        let crossed = result.map_or([false; NUM_RISK_TERMS], |r| r.risk.exceeded);
+        c.risk_crossed
+            .extend((0..NUM_RISK_TERMS).map(|k| k as f64 + 0.8 * crossed[k] as u8 as f64));
         // Command and measured planar velocity as world-frame arrows above the trunk.
         let yaw = roll_pitch_yaw(robot.base_quat_wxyz())[2];
         let heading = nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), yaw);
@@ -553,12 +562,7 @@ impl EpisodeLogger {
 
     fn log_events(&mut self, env: &Env, r: &StepResult) -> Result<()> {
         for (k, (name, term)) in env.config().risk.terms().into_iter().enumerate() {
-            if r.risk.exceeded[k] && !self.prev_exceeded[k] {
-                self.event(
-                    rerun::TextLogLevel::WARN,
-                    format!("risk threshold crossed: {name}"),
-                )?;
-            }
+            // crossings are the `plots/risk_crossed` series; only fired penalties are events
             if r.risk.fired[k] {
                 self.event(
                     rerun::TextLogLevel::ERROR,
@@ -566,7 +570,6 @@ impl EpisodeLogger {
                 )?;
             }
         }
-        self.prev_exceeded = r.risk.exceeded;
         let robot = env.robot();
         let base = robot.base_pos_m();
         let v = base_vel_world(robot);
@@ -820,6 +823,10 @@ fn send_batch(
     send("plots/velocity/yaw_rate", scalars(&c.wz, 2)?)?;
     send("plots/torques", scalars(&c.torques, c.torques.len() / n)?)?;
     send("plots/contacts", scalars(&c.contacts, 4)?)?;
+    send(
+        "plots/risk_crossed",
+        scalars(&c.risk_crossed, NUM_RISK_TERMS)?,
+    )?;
     let send_value = |path: &str, cols: Vec<rerun::SerializedComponentColumn>| -> Result<()> {
         if nv > 0 {
             rec.send_columns(path, value_index.clone(), cols)

@@ -1,0 +1,172 @@
+//! What acts in a benchmark: a rall checkpoint's Gaussian mean, or an ONNX
+//! network (with its JSON sidecar) trained anywhere. Benchmarks ask an
+//! [`Actor`] for actions and never branch on where the policy came from.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::{bail, ensure, Context, Result};
+use tract_onnx::prelude::*;
+
+use super::sidecar::{read_sidecar, SidecarPolicy};
+use crate::env::{EnvConfig, ACT_DIM, OBS_DIM};
+use crate::learn::Learner;
+
+/// Deterministic actions for a batch of observation rows.
+pub trait Actor {
+    /// Raw actions (before clip and scale), `n x ACT_DIM`, for `obs` (`n` rows of
+    /// rall's observation row).
+    fn actions(&self, obs: &[f32]) -> Result<Vec<f32>>;
+    /// The checkpoint's learner (critic, Gaussian), when there is one.
+    fn learner(&self) -> Option<&Learner> {
+        None
+    }
+}
+
+impl Actor for Learner {
+    fn actions(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        Ok(self.act_mean(obs))
+    }
+    fn learner(&self) -> Option<&Learner> {
+        Some(self)
+    }
+}
+
+/// A policy from a file: a rall checkpoint or an ONNX network.
+pub enum Policy {
+    Checkpoint(Box<Learner>),
+    Onnx(Box<OnnxPolicy>),
+}
+
+impl Actor for Policy {
+    fn actions(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        match self {
+            Policy::Checkpoint(l) => l.actions(obs),
+            Policy::Onnx(o) => o.actions(obs),
+        }
+    }
+    fn learner(&self) -> Option<&Learner> {
+        match self {
+            Policy::Checkpoint(l) => Some(l),
+            Policy::Onnx(_) => None,
+        }
+    }
+}
+
+/// Whether `path` names an ONNX file (by its extension).
+pub fn is_onnx(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
+}
+
+/// An ONNX policy run by tract: one input `obs` (`batch x width`), one output
+/// (`batch x 12` raw actions), the input gathered from rall's observation row
+/// as the sidecar lays it out.
+pub struct OnnxPolicy {
+    plan: Arc<TypedRunnableModel>,
+    /// `input[k] = rall_obs[columns[k]]`.
+    columns: Vec<usize>,
+    /// `rall_action[joint_order[k]] = output[k]`.
+    joint_order: Vec<usize>,
+    /// The env the sidecar describes (PD, rates, scales, noise, commands, envelope).
+    pub env: EnvConfig,
+    /// Sidecar sections that were absent and took rall's defaults.
+    pub defaulted: Vec<&'static str>,
+}
+
+impl OnnxPolicy {
+    /// Loads `path` (.onnx) and its sidecar (`.json` beside it).
+    pub fn load(path: &Path) -> Result<OnnxPolicy> {
+        let side = read_sidecar(&crate::export::sidecar_path(path))?;
+        let plan = load_plan(path, side.input_columns.len())
+            .with_context(|| format!("ONNX policy {}", path.display()))?;
+        let SidecarPolicy {
+            env,
+            input_columns,
+            joint_order,
+            defaulted,
+        } = side;
+        let policy = OnnxPolicy {
+            plan,
+            columns: input_columns,
+            joint_order,
+            env,
+            defaulted,
+        };
+        // one zero row through the network: a wrong-shaped output is refused now
+        policy
+            .actions(&[0.0; OBS_DIM])
+            .with_context(|| format!("ONNX policy {}", path.display()))?;
+        Ok(policy)
+    }
+
+    /// Width of the network's input.
+    pub fn input_width(&self) -> usize {
+        self.columns.len()
+    }
+}
+
+impl Actor for OnnxPolicy {
+    fn actions(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        ensure!(
+            obs.len().is_multiple_of(OBS_DIM),
+            "observation rows of {OBS_DIM} expected, got {} values",
+            obs.len()
+        );
+        let n = obs.len() / OBS_DIM;
+        let w = self.columns.len();
+        let mut input = Vec::with_capacity(n * w);
+        for row in obs.chunks_exact(OBS_DIM) {
+            input.extend(self.columns.iter().map(|&c| row[c]));
+        }
+        let x = tract_ndarray::Array2::from_shape_vec((n, w), input)?;
+        let out = self.plan.run(tvec!(Tensor::from(x).into()))?;
+        let view = out[0].to_plain_array_view::<f32>()?;
+        ensure!(
+            view.shape() == [n, ACT_DIM],
+            "the network returned shape {:?} for {n} observations, expected [{n}, {ACT_DIM}]",
+            view.shape()
+        );
+        let mut actions = vec![0.0f32; n * ACT_DIM];
+        for (row, out) in actions.chunks_exact_mut(ACT_DIM).zip(
+            view.as_slice()
+                .context("a contiguous output")?
+                .chunks_exact(ACT_DIM),
+        ) {
+            for (k, &j) in self.joint_order.iter().enumerate() {
+                row[j] = out[k];
+            }
+        }
+        Ok(actions)
+    }
+}
+
+/// The optimised tract plan of `path`, checked to take one `batch x width` input.
+fn load_plan(path: &Path, width: usize) -> Result<Arc<TypedRunnableModel>> {
+    let model = tract_onnx::onnx()
+        .model_for_path(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let typed = model.into_typed().context("tract cannot type the graph")?;
+    let inputs = typed.input_outlets()?.len();
+    if inputs != 1 {
+        bail!(
+            "the network has {inputs} inputs; rall feeds one (`obs`, the sidecar's observation.fields) — an RMA student's `history` input is not supported for outside policies"
+        );
+    }
+    let fact = typed.input_fact(0)?;
+    ensure!(
+        fact.shape.len() == 2,
+        "the network's input has shape {:?}, expected [batch, {width}]",
+        fact.shape
+    );
+    if let Ok(w) = fact.shape[1].to_i64() {
+        ensure!(
+            w == width as i64,
+            "the network's input is {w} wide but the sidecar's observation.fields hold {width} values"
+        );
+    }
+    typed
+        .into_optimized()
+        .context("tract cannot optimise the graph")?
+        .into_runnable()
+}
