@@ -3,6 +3,7 @@
 # risk design, seeds 1 and 2, 1,500 terrain iterations, checkpoints every 50. Runs
 # JOBS at a time (default 2) with one worker thread each; a run that already has a
 # checkpoint resumes (exactly) instead of starting again, a finished run is skipped.
+# A finished run ships without its resume state (only its checkpoints 1100-1500).
 #   bash experiments/risk-signal.sh            # all six
 #   JOBS=1 bash experiments/risk-signal.sh paper-s1 rare-s2
 #   bash experiments/risk-signal.sh --ship     # each run's state (and its checkpoints 1100-1500,
@@ -23,6 +24,10 @@ if [ "${1:-}" = "--ship" ]; then
     for f in latest.safetensors config.toml metrics.csv; do
       cp "$dir/$f" "$SHIPPED/$run/$f.tmp" && mv "$SHIPPED/$run/$f.tmp" "$SHIPPED/$run/$f"
     done
+    # a finished run needs no resume state: its checkpoints below are what is judged
+    if [ -f "$dir/checkpoints/model_$(printf '%06d' "$ITERATIONS").safetensors" ]; then
+      rm -f "$SHIPPED/$run/latest.safetensors"
+    fi
     # the five checkpoints the pilot judges a run on, actor-only (evaluation needs no more)
     for it in 1100 1200 1300 1400 1500; do
       ckpt="$(printf '%s/checkpoints/model_%06d.safetensors' "$dir" "$it")"
@@ -44,6 +49,11 @@ mkdir -p runs/risk-signal
 one_run() {
   local run="$1" design="${1%-s*}" seed="${1##*-s}" dir="runs/risk-signal/$1"
   local config="${CONFIG[$design]:?unknown design $design (paper, dt-scaled, rare)}"
+  local last; last="checkpoints/model_$(printf '%06d' "$ITERATIONS").safetensors"
+  if [ -f "$dir/$last" ] || [ -f "$SHIPPED/$run/$last" ]; then
+    echo "$run: finished ($ITERATIONS iterations), skipped"
+    return 0
+  fi
   if [ ! -f "$dir/latest.safetensors" ] && [ -f "$SHIPPED/$run/latest.safetensors" ]; then
     mkdir -p "$dir" && cp "$SHIPPED/$run/"{latest.safetensors,config.toml,metrics.csv} "$dir/"
   fi
