@@ -16,6 +16,25 @@ fn stdout(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
+/// The stderr of a `rall` call that must fail.
+fn refused(args: &[&str]) -> String {
+    let o = rall(args);
+    assert!(!o.status.success(), "rall {args:?} succeeded");
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// `rall checkpoint actor-only` from the shipped run state to `out`.
+fn actor_only_to(out: &str) -> Output {
+    rall(&[
+        "checkpoint",
+        "actor-only",
+        "--checkpoint",
+        RUN_STATE,
+        "--out",
+        out,
+    ])
+}
+
 const RUN_STATE: &str = "policies/paper/baseline-s1/latest.safetensors";
 
 #[test]
@@ -28,14 +47,7 @@ fn info_tells_a_run_state_from_an_actor_only_copy() {
     assert!(out.contains("checksums verified"), "{out}");
     assert!(out.contains("resumes bit for bit"), "{out}");
 
-    let out = stdout(&rall(&[
-        "checkpoint",
-        "actor-only",
-        "--checkpoint",
-        RUN_STATE,
-        "--out",
-        copy.to_str().unwrap(),
-    ]));
+    let out = stdout(&actor_only_to(copy.to_str().unwrap()));
     assert!(
         out.contains("actor only: evaluates, never resumes"),
         "{out}"
@@ -63,19 +75,10 @@ fn info_tells_a_run_state_from_an_actor_only_copy() {
 
 #[test]
 fn bad_input_is_named() {
-    let o = rall(&["checkpoint", "info", "no/such/file.safetensors"]);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = refused(&["checkpoint", "info", "no/such/file.safetensors"]);
     assert!(err.contains("no/such/file.safetensors"), "{err}");
 
-    let o = rall(&[
-        "checkpoint",
-        "actor-only",
-        "--checkpoint",
-        RUN_STATE,
-        "--out",
-        RUN_STATE,
-    ]);
+    let o = actor_only_to(RUN_STATE);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("is the checkpoint itself"), "{err}");
@@ -89,14 +92,7 @@ fn bad_input_is_named() {
     )
     .unwrap();
     let before = std::fs::read(&other).unwrap();
-    let o = rall(&[
-        "checkpoint",
-        "actor-only",
-        "--checkpoint",
-        RUN_STATE,
-        "--out",
-        other.to_str().unwrap(),
-    ]);
+    let o = actor_only_to(other.to_str().unwrap());
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("already holds a full checkpoint"), "{err}");
