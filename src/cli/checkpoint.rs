@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 
 use crate::learn::read_checkpoint;
 use crate::runner::load_policy;
-use crate::runner::policy_file::save_actor_only;
+use crate::runner::policy_file::{is_actor_only, save_actor_only};
 
 #[derive(Debug, Args)]
 pub struct CheckpointArgs {
@@ -65,9 +65,7 @@ fn refuse_to_replace_a_run_state(checkpoint: &Path, out: &Path) -> Result<()> {
             out.display()
         );
     }
-    if read_checkpoint(out)
-        .is_ok_and(|c| c.metadata.get("contents").map(String::as_str) != Some("actor-only"))
-    {
+    if read_checkpoint(out).is_ok_and(|c| !is_actor_only(&c.metadata)) {
         bail!(
             "--out {} already holds a full checkpoint (it resumes a run); remove it first or write elsewhere",
             out.display()

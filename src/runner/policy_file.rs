@@ -107,6 +107,11 @@ pub struct LoadedPolicy {
 /// Metadata `contents` of a file written by [`save_actor_only`].
 const ACTOR_ONLY: &str = "actor-only";
 
+/// Whether checkpoint metadata `meta` marks a file written by [`save_actor_only`].
+pub fn is_actor_only(meta: &HashMap<String, String>) -> bool {
+    meta.get("contents").map(String::as_str) == Some(ACTOR_ONLY)
+}
+
 /// Whether a tensor belongs to what acts: the actor's weights (with RMA's encoder
 /// or adaptation module) and the observation normaliser.
 fn acts(name: &str) -> bool {
@@ -266,7 +271,7 @@ fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
     if meta.get("latent_source").map(String::as_str) == Some("adaptation") {
         learner.set_latent_source(LatentSource::Adaptation);
     }
-    let actor_only = meta.get("contents").map(String::as_str) == Some(ACTOR_ONLY);
+    let actor_only = is_actor_only(&meta);
     let loaded = if actor_only {
         learner.load_state_keeping(&tensors, |name| !acts(name))
     } else {
