@@ -635,3 +635,104 @@ episodes = 1
         "{readme}"
     );
 }
+
+/// An experiment with one run and no meta controller: the shape of a pilot that
+/// judges TTF alone.
+fn one_run_spec(dir: &Path) -> String {
+    let rall = write_config(dir, "rall", CriticKind::Iqn, Some(0.5));
+    format!(
+        r#"
+name = "pilot"
+runs_dir = "{runs}"
+results_dir = "{results}"
+shipped_dir = "{shipped}"
+threads = 2
+
+[[run]]
+name = "rall"
+label = "RALL"
+config = "{rall}"
+seed = 1
+iterations = 2
+
+[tracking]
+episodes = 2
+seed = 7
+
+[ttf]
+methods = ["RALL"]
+seeds = 1
+repeats = 2
+loads = ["ball"]
+
+[platform]
+methods = []
+heights_m = [0.40]
+seeds = 1
+repeats = 1
+
+[race]
+methods = []
+agents = 1
+episodes = 1
+
+[checkpoints]
+last = 2
+every = 1
+"#,
+        runs = dir.join("runs").display(),
+        results = dir.join("results").display(),
+        shipped = dir.join("shipped").display(),
+    )
+}
+
+#[test]
+fn a_finished_run_shipped_as_numbered_checkpoints_alone_evaluates_without_meta() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("pilot.toml");
+    std::fs::write(&file, one_run_spec(dir.path())).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    assert!(spec.meta.is_empty());
+    let stop = Arc::new(AtomicBool::new(false));
+    train_all(&spec, stop.clone()).unwrap();
+    // ship the run as its numbered checkpoints only (no latest, no metrics), as a
+    // finished pilot run is committed, and drop the run directory
+    let run_dir = spec.run_dir(&spec.runs[0]);
+    let shipped = dir.path().join("shipped").join("rall-s1");
+    std::fs::create_dir_all(&shipped).unwrap();
+    std::fs::rename(run_dir.join("checkpoints"), shipped.join("checkpoints")).unwrap();
+    std::fs::remove_dir_all(&run_dir).unwrap();
+    let state = run_state(&spec, &spec.runs[0]).unwrap();
+    assert!(state.done(), "{:?}", state.progress);
+    let eval_only = ExperimentOptions {
+        train: false,
+        evaluate: true,
+        allow_unfinished: false,
+    };
+    run_experiment(&spec, &eval_only, stop).unwrap();
+    let ttf = std::fs::read_to_string(dir.path().join("results/ttf.csv")).unwrap();
+    assert!(ttf.lines().count() > 1, "{ttf}");
+    assert!(!run_dir.exists(), "evaluating must not restore or train the run");
+}
+
+#[test]
+fn experiment_run_filter_refuses_an_unknown_label_naming_the_known_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("pilot.toml");
+    std::fs::write(&file, one_run_spec(dir.path())).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["experiment", file.to_str().unwrap(), "--train-only"])
+        .args(["--run", "RALL seed 9", "--threads", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("RALL seed 9") && e.contains("it has: RALL"), "{e}");
+    assert!(!dir.path().join("runs").exists(), "nothing trained");
+    // --run without --train-only is refused by the command line
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["experiment", file.to_str().unwrap(), "--run", "RALL"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+}

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use clap::Args;
 
 use crate::experiment::{run_experiment, run_state, ship_all, ExperimentOptions, ExperimentSpec};
@@ -29,10 +29,40 @@ pub struct ExperimentArgs {
     /// `shipped_dir` (to commit them) and exit.
     #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only"])]
     pub ship: bool,
+    /// With --train-only: train only the run with this label (repeat it), so that
+    /// several runs of one experiment train side by side, one process each.
+    #[arg(long = "run", value_name = "LABEL", requires = "train_only")]
+    pub runs: Vec<String>,
+    /// With --train-only: worker threads for this process (default: the file's `threads`).
+    #[arg(long, value_name = "N", requires = "train_only")]
+    pub threads: Option<usize>,
+}
+
+/// `spec` narrowed to the runs labelled in `labels` (all when empty); an unknown
+/// label is refused, naming the labels the file has.
+fn only_runs(mut spec: ExperimentSpec, labels: &[String]) -> Result<ExperimentSpec> {
+    if labels.is_empty() {
+        return Ok(spec);
+    }
+    for l in labels {
+        if spec.run(l).is_none() {
+            let known: Vec<&str> = spec.runs.iter().map(|r| r.label.as_str()).collect();
+            bail!(
+                "--run {l:?}: the experiment file has no run with that label (it has: {})",
+                known.join(", ")
+            );
+        }
+    }
+    spec.runs.retain(|r| labels.contains(&r.label));
+    Ok(spec)
 }
 
 pub fn run(args: &ExperimentArgs) -> Result<()> {
-    let spec = ExperimentSpec::from_file(&args.file)?;
+    let mut spec = only_runs(ExperimentSpec::from_file(&args.file)?, &args.runs)?;
+    if let Some(n) = args.threads {
+        crate::learn::ppo::check_count("--threads", n, 0, crate::config::MAX_THREADS)?;
+        spec.threads = n;
+    }
     if args.ship {
         return ship_all(&spec, &args.file);
     }

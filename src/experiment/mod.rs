@@ -499,7 +499,8 @@ fn choose_while_the_window_exists(spec: &ExperimentSpec, r: &spec::RunSpec) -> R
 }
 
 /// The newest readable checkpoint of run `r`: in its run directory, else its
-/// shipped copy; `None` when it has none.
+/// shipped copy (its `latest`, or for a finished run shipped as its numbered
+/// actor-only checkpoints alone, the newest of those); `None` when it has none.
 pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Option<PathBuf>> {
     let rd = RunDir {
         root: spec.run_dir(r),
@@ -507,11 +508,19 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
     if has_checkpoints(&rd) {
         return Ok(Some(rd.resume_point()?.0));
     }
-    Ok(spec
-        .shipped_dir
-        .as_ref()
-        .map(|s| s.join(spec.run_dir_name(r)).join(LATEST))
-        .filter(|p| p.exists()))
+    let Some(shipped) = &spec.shipped_dir else {
+        return Ok(None);
+    };
+    let copy = RunDir {
+        root: shipped.join(spec.run_dir_name(r)),
+    };
+    if copy.latest().exists() {
+        return Ok(Some(copy.latest()));
+    }
+    Ok(copy
+        .checkpoints_by_iteration()
+        .pop()
+        .map(|(_, path)| path))
 }
 
 /// The chosen final policy of finished run `r` under `[selection]` (its file and

@@ -32,8 +32,8 @@ pub struct ExperimentSpec {
     pub platform: PlatformSpec,
     pub race: RaceSpec,
     /// One IQR meta controller per pair of seeds (`[[meta]]`; a single `[meta]` table
-    /// is one).
-    #[serde(deserialize_with = "one_or_more")]
+    /// is one; none: no meta controller on the race).
+    #[serde(default, deserialize_with = "one_or_more")]
     pub meta: Vec<MetaSpec>,
     #[serde(default)]
     pub bootstrap: BootstrapSpec,
