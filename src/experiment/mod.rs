@@ -11,6 +11,7 @@ mod ladder;
 pub mod plots;
 pub mod pooled;
 pub mod results;
+pub mod risk_signal;
 pub mod selection;
 pub mod spec;
 pub mod stats;
@@ -517,10 +518,7 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
     if copy.latest().exists() {
         return Ok(Some(copy.latest()));
     }
-    Ok(copy
-        .checkpoints_by_iteration()
-        .pop()
-        .map(|(_, path)| path))
+    Ok(copy.checkpoints_by_iteration().pop().map(|(_, path)| path))
 }
 
 /// The chosen final policy of finished run `r` under `[selection]` (its file and
@@ -967,6 +965,9 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
     results.set_curves(spec, curves)?;
     results.checkpoint_spread = spread;
+    if let Some(rs) = &spec.risk_signal {
+        results.risk_signal = risk_signal::risk_rows(spec, rs)?;
+    }
     Ok(results)
 }
 

@@ -170,6 +170,9 @@ pub struct ExperimentResults {
     /// The paper's number at rung 0 of each curve that has one: (benchmark, method, value).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub curve_paper: Vec<(String, String, f64)>,
+    /// With `[risk_signal]`: each run's risk terms over its last training iterations.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub risk_signal: Vec<super::risk_signal::RiskTermRow>,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
     pub evaluation_wall_clock_min: f64,
@@ -220,6 +223,7 @@ impl ExperimentResults {
             ladder: None,
             curve_paper: Vec::new(),
             checkpoint_spread: Vec::new(),
+            risk_signal: Vec::new(),
             evaluation_wall_clock_min: eval_wall_s / 60.0,
         }
     }
@@ -337,6 +341,7 @@ impl ExperimentResults {
 
         self.curves_markdown(&mut s);
         self.spread_markdown(&mut s);
+        super::risk_signal::risk_markdown(&self.risk_signal, &mut s);
         self.methods_markdown(&mut s);
         self.per_run_markdown(&mut s);
         let _ = writeln!(s, "\n## Figures\n");
@@ -586,6 +591,12 @@ impl ExperimentResults {
         }
         if !self.checkpoint_spread.is_empty() {
             files.push(("checkpoints.csv", self.checkpoints_csv()));
+        }
+        if !self.risk_signal.is_empty() {
+            files.push((
+                "risk_signal.csv",
+                super::risk_signal::risk_csv(&self.risk_signal),
+            ));
         }
         files
     }

@@ -46,6 +46,9 @@ pub struct ExperimentSpec {
     /// Robustness curves over the severity ladder (`[curves]`); absent: the tables only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curves: Option<CurvesSpec>,
+    /// What each run's risk penalties marked in training (`[risk_signal]`); absent: not reported.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub risk_signal: Option<super::risk_signal::RiskSignalSpec>,
 }
 
 /// A run's headline: its last `last` checkpoints, `every` iterations apart.
@@ -322,6 +325,9 @@ impl ExperimentSpec {
         }
         if let Some(c) = &self.curves {
             c.validate()?;
+        }
+        if self.risk_signal.as_ref().is_some_and(|r| r.window == 0) {
+            bail!("risk_signal.window must be at least 1 iteration");
         }
         if let Some(c) = &self.checkpoints {
             if c.last == 0 || c.every == 0 {
