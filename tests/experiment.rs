@@ -712,7 +712,10 @@ fn a_finished_run_shipped_as_numbered_checkpoints_alone_evaluates_without_meta()
     run_experiment(&spec, &eval_only, stop).unwrap();
     let ttf = std::fs::read_to_string(dir.path().join("results/ttf.csv")).unwrap();
     assert!(ttf.lines().count() > 1, "{ttf}");
-    assert!(!run_dir.exists(), "evaluating must not restore or train the run");
+    assert!(
+        !run_dir.exists(),
+        "evaluating must not restore or train the run"
+    );
 }
 
 #[test]
@@ -727,7 +730,10 @@ fn experiment_run_filter_refuses_an_unknown_label_naming_the_known_ones() {
         .unwrap();
     assert!(!out.status.success());
     let e = String::from_utf8_lossy(&out.stderr);
-    assert!(e.contains("RALL seed 9") && e.contains("it has: RALL"), "{e}");
+    assert!(
+        e.contains("RALL seed 9") && e.contains("it has: RALL"),
+        "{e}"
+    );
     assert!(!dir.path().join("runs").exists(), "nothing trained");
     // --run without --train-only is refused by the command line
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_rall"))

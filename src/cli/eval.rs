@@ -875,7 +875,7 @@ fn race(a: &RaceArgs) -> Result<()> {
     };
     run_ladder(&a.common.out, "race", &ladder, &rungs, |s, rung| {
         let report = run(&RaceOptions {
-            params: rung.apply(&opts.params),
+            params: rung.apply_race(&opts.params),
             ..opts.clone()
         })?;
         let mut points = Vec::new();

@@ -27,6 +27,10 @@ pub struct Rung {
     pub race_obstacle_height_m: f64,
     pub race_drop_height_m: f64,
     pub race_rough_amplitude_m: f64,
+    /// The race course's own pushes: the TTF pushes of the same rung end nearly every
+    /// race episode at its first push from rung 2 on, so the race climbs more gently.
+    pub race_push_force_n: f64,
+    pub race_push_every_steps: usize,
     /// Ground friction, uniform in [lo, hi] per robot.
     pub friction: [f64; 2],
     /// Mass added to the trunk (kg), uniform in [lo, hi] per robot.
@@ -51,6 +55,7 @@ impl Rung {
             ("race_obstacle_height_m", self.race_obstacle_height_m),
             ("race_drop_height_m", self.race_drop_height_m),
             ("race_rough_amplitude_m", self.race_rough_amplitude_m),
+            ("race_push_force_n", self.race_push_force_n),
         ];
         for (key, v) in positive {
             if !(v.is_finite() && v > 0.0) {
@@ -58,11 +63,15 @@ impl Rung {
             }
         }
         let hold = ScenarioParams::default().push_hold_steps;
-        if self.push_every_steps <= hold {
-            bail!(
-                "severity rung {index}: push_every_steps = {} must exceed the push's {hold} held steps",
-                self.push_every_steps
-            );
+        for (key, every) in [
+            ("push_every_steps", self.push_every_steps),
+            ("race_push_every_steps", self.race_push_every_steps),
+        ] {
+            if every <= hold {
+                bail!(
+                    "severity rung {index}: {key} = {every} must exceed the push's {hold} held steps"
+                );
+            }
         }
         if !(0.5..=3.0).contains(&self.ball_container_scale) {
             bail!(
@@ -89,7 +98,8 @@ impl Rung {
         Ok(())
     }
 
-    /// `base` with this rung's axes (the axes the rung does not set stay).
+    /// `base` with this rung's axes of the TTF and platform benchmarks (the axes
+    /// the rung does not set stay).
     pub fn apply(&self, base: &ScenarioParams) -> ScenarioParams {
         let mut p = base.clone();
         p.push_force_n = self.push_force_n;
@@ -97,9 +107,6 @@ impl Rung {
         p.rough.amplitude_m = self.rough_amplitude_m;
         p.arm_resample_s = self.arm_resample_s;
         p.ball_container_scale = self.ball_container_scale;
-        p.race.obstacle_height_m = self.race_obstacle_height_m;
-        p.race.drop_height_m = self.race_drop_height_m;
-        p.race.rough_amplitude_m = self.race_rough_amplitude_m;
         // `--no-randomization` (None) stays off
         if p.friction.is_some() {
             p.friction = Some(self.friction);
@@ -107,6 +114,19 @@ impl Rung {
         if p.added_base_mass_kg.is_some() {
             p.added_base_mass_kg = Some(self.added_base_mass_kg);
         }
+        p
+    }
+
+    /// `base` with this rung's race axes: the course and the race's own pushes.
+    /// Friction and added mass stay `base`'s (the paper's ranges): the course and the
+    /// pushes alone already take the race from few falls to nearly all.
+    pub fn apply_race(&self, base: &ScenarioParams) -> ScenarioParams {
+        let mut p = base.clone();
+        p.push_force_n = self.race_push_force_n;
+        p.push_every_steps = self.race_push_every_steps;
+        p.race.obstacle_height_m = self.race_obstacle_height_m;
+        p.race.drop_height_m = self.race_drop_height_m;
+        p.race.rough_amplitude_m = self.race_rough_amplitude_m;
         p
     }
 }
@@ -170,7 +190,7 @@ impl Ladder {
     /// The ladder as a markdown table (printed with every result).
     pub fn markdown(&self, rungs: &[usize]) -> String {
         let mut s = String::from(
-            "| rung | push | rough ground | friction | added mass | arm targets every | ball container | platform | race blocks / drop / rough |\n|---:|---|---|---|---|---|---|---|---|\n",
+            "| rung | push | rough ground | friction | added mass | arm targets every | ball container | platform | race blocks / drop / rough | race push |\n|---:|---|---|---|---|---|---|---|---|---|\n",
         );
         for &i in rungs {
             let r = &self.rungs[i];
@@ -180,7 +200,7 @@ impl Ladder {
                 .map(|h| format!("{h:.2}"))
                 .collect();
             s.push_str(&format!(
-                "| {i} | {:.0} N every {} steps | +-{:.3} m | {:.2}-{:.2} | {:.1} to {:.1} kg | {:.1} s | x{:.2} | {} m | {:.2} / {:.2} / {:.2} m |\n",
+                "| {i} | {:.0} N every {} steps | +-{:.3} m | {:.2}-{:.2} | {:.1} to {:.1} kg | {:.1} s | x{:.2} | {} m | {:.2} / {:.2} / {:.2} m | {:.0} N every {} steps |\n",
                 r.push_force_n,
                 r.push_every_steps,
                 r.rough_amplitude_m,
@@ -193,7 +213,9 @@ impl Ladder {
                 heights.join(", "),
                 r.race_obstacle_height_m,
                 r.race_drop_height_m,
-                r.race_rough_amplitude_m
+                r.race_rough_amplitude_m,
+                r.race_push_force_n,
+                r.race_push_every_steps
             ));
         }
         s
@@ -210,6 +232,7 @@ mod tests {
         assert!(l.rungs.len() >= 4);
         let d = ScenarioParams::default();
         assert_eq!(l.rungs[0].apply(&d), d);
+        assert_eq!(l.rungs[0].apply_race(&d), d);
         assert_eq!(l.rungs[0].platform_heights_m, vec![0.40, 0.45]);
     }
 
@@ -228,6 +251,8 @@ mod tests {
             assert!(b.race_obstacle_height_m >= a.race_obstacle_height_m);
             assert!(b.race_drop_height_m >= a.race_drop_height_m);
             assert!(b.race_rough_amplitude_m >= a.race_rough_amplitude_m);
+            assert!(b.race_push_force_n >= a.race_push_force_n);
+            assert!(b.race_push_every_steps <= a.race_push_every_steps);
             assert!(b.friction[0] <= a.friction[0] && b.friction[1] <= a.friction[1]);
             assert!(b.added_base_mass_kg[1] >= a.added_base_mass_kg[1]);
         }

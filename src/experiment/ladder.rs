@@ -103,7 +103,7 @@ fn evaluate_rung(
         let opts = RaceOptions {
             agents: c.race_agents,
             episodes: c.race_episodes,
-            params: rung.apply(&tables.race.0.params),
+            params: rung.apply_race(&tables.race.0.params),
             ..tables.race.0.clone()
         };
         let policies = load_runs(spec, &tables.race.1)?;
