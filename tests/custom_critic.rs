@@ -192,7 +192,7 @@ fn the_huber_critic_computes_its_loss_and_gradient() {
     // the gradient: central differences of the loss in every parameter
     let eps = 1e-3;
     let mut worst = 0.0f64;
-    for i in 0..grads.len() {
+    for (i, &g) in grads.iter().enumerate() {
         let at = |critic: &mut Box<dyn Critic>, x: f32| {
             critic.params_mut().data[i] = x;
             loss_and_gradient(critic.as_ref(), &obs, &targets).0
@@ -201,13 +201,9 @@ fn the_huber_critic_computes_its_loss_and_gradient() {
         let (hi, lo) = (p + eps, p - eps);
         let fd = (at(&mut critic, hi) - at(&mut critic, lo)) / (hi - lo) as f64;
         critic.params_mut().data[i] = p;
-        let err = (fd - grads[i] as f64).abs() / (1e-2 + (grads[i] as f64).abs());
+        let err = (fd - g as f64).abs() / (1e-2 + (g as f64).abs());
         worst = worst.max(err);
-        assert!(
-            err < 2e-2,
-            "parameter {i}: analytic {} vs numeric {fd}",
-            grads[i]
-        );
+        assert!(err < 2e-2, "parameter {i}: analytic {g} vs numeric {fd}");
     }
     assert!(
         grads.iter().any(|g| g.abs() > 1e-3),
