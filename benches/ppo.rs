@@ -71,7 +71,8 @@ fn update_flops(cfg: &LearnerConfig) -> f64 {
             let fwd = mlp_flops(&dims, total + ENVS) / 3.0 * 1.5; // forward only
             (mlp_flops(&dims, b), fwd)
         }
-        CriticKind::Iqn => {
+        _ => {
+            // IQN
             let dims: Vec<usize> = [&[OBS][..], &cfg.critic_hidden].concat();
             let (n, c) = (cfg.num_taus, cfg.num_cos);
             let embed = 2.0 * 2.0 * (n * c * f) as f64;

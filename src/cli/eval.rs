@@ -18,7 +18,7 @@ use crate::experiment::curves::{
     curve_csv, curve_markdown, platform_point, race_point, ttf_point, CurvePoint, Resampling,
 };
 use crate::experiment::TrackingEstimates;
-use crate::learn::{CriticKind, Distortion};
+use crate::learn::Distortion;
 use crate::runner::{load_policy, Progress, RunDir};
 
 #[derive(Debug, Args)]
@@ -823,8 +823,9 @@ fn race(a: &RaceArgs) -> Result<()> {
             let rp = rp
                 .critic()
                 .context("--meta RISKY: the switch reads its critic's IQR")?;
-            if rp.config().critic != CriticKind::Iqn {
-                eprintln!("warning: the RISKY policy {risky} has a scalar critic: its IQR is 0, the meta controller never switches");
+            let critic = rp.config().critic;
+            if !critic.has_quantiles() {
+                eprintln!("warning: the RISKY policy {risky} has a {critic} critic: its IQR is 0, the meta controller never switches");
             }
             let risk = rp.config().distortion();
             if risk != (Distortion::Cvar { eta: 1.0 }) {

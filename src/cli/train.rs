@@ -82,11 +82,7 @@ pub struct TrainArgs {
 }
 
 fn parse_critic(s: &str) -> Result<CriticKind, String> {
-    match s {
-        "iqn" => Ok(CriticKind::Iqn),
-        "scalar" => Ok(CriticKind::Scalar),
-        other => Err(format!("unknown critic {other:?}: use iqn or scalar")),
-    }
+    CriticKind::from_name(s).map_err(|e| e.to_string())
 }
 
 /// `rall train`, alone or as one rank under `mpirun`/`srun` (an error on any
@@ -260,8 +256,8 @@ fn apply_run_overrides(cfg: &mut TrainConfig, args: &TrainArgs) {
     }
     if let Some(c) = args.critic {
         cfg.learner.critic = c;
-        if c == CriticKind::Scalar && args.cvar_eta.is_none() {
-            // the scalar critic has no distribution to distort: the config's
+        if !c.has_quantiles() && args.cvar_eta.is_none() {
+            // a scalar critic has no distribution to distort: the config's
             // risk setting no longer applies (an explicit --cvar-eta is still refused)
             cfg.learner.cvar_eta = None;
             cfg.learner.distortion = None;
@@ -311,9 +307,10 @@ fn parse_std_reset(s: &str) -> Result<ActionStdReset, String> {
 
 fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {
     let name = config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
+    // a critic without quantiles is named by the risk label already
     let critic = match cfg.learner.critic {
-        CriticKind::Iqn => "iqn-",
-        CriticKind::Scalar => "",
+        c if c.has_quantiles() => format!("{c}-"),
+        _ => String::new(),
     };
     PathBuf::from(&cfg.runner.runs_dir).join(format!(
         "{name}-{critic}{}-s{}",

@@ -661,9 +661,10 @@ fn parse_load(s: &str) -> Result<Load> {
 /// The meta controller's threshold by the experiment's rule: a quantile of the
 /// risky critic's IQR over robots walking one episode on flat ground.
 pub fn calibrate_threshold(m: &MetaSpec, risky: &NamedPolicy, threads: usize) -> Result<f32> {
+    let critic = risky.critic()?.config().critic;
     anyhow::ensure!(
-        risky.critic()?.config().critic == crate::learn::CriticKind::Iqn,
-        "meta.risky = {:?} has a scalar critic: the meta controller needs the IQR of a value distribution (an IQN critic)",
+        critic.has_quantiles(),
+        "meta.risky = {:?} has a {critic} critic: the meta controller needs the IQR of a value distribution (a critic with quantiles, such as IQN)",
         m.risky
     );
     let cfg = tracking_env(&risky.env);

@@ -1,7 +1,8 @@
 //! The policy and value networks together, with the inference calls the runner,
 //! the evaluator and the viewer use. Observations are `n x obs_dim` row-major.
 
-use super::nets::{GaussianActor, IqnCritic, ParamSet, ScalarCritic};
+use super::critic::Critic;
+use super::nets::GaussianActor;
 use super::normalizer::EmpiricalNormalizer;
 use super::risk::{Distortion, IQR_TAUS};
 use super::storage::ActOutput;
@@ -12,33 +13,11 @@ use std::borrow::Cow;
 /// `0.5 ln(2 pi)`.
 pub const HALF_LN_2PI: f32 = 0.918_938_5;
 
-/// The critic: a value distribution (IQN) or a scalar value (baseline).
-#[derive(Clone, Debug)]
-pub enum Critic {
-    Iqn(IqnCritic),
-    Scalar(ScalarCritic),
-}
-
-impl Critic {
-    pub fn params(&self) -> &ParamSet {
-        match self {
-            Critic::Iqn(c) => &c.params,
-            Critic::Scalar(c) => &c.params,
-        }
-    }
-    pub fn params_mut(&mut self) -> &mut ParamSet {
-        match self {
-            Critic::Iqn(c) => &mut c.params,
-            Critic::Scalar(c) => &mut c.params,
-        }
-    }
-}
-
 /// Actor, critic, and the fixed tau grid of the distorted value.
 #[derive(Clone, Debug)]
 pub struct ActorCritic {
     pub actor: GaussianActor,
-    pub critic: Critic,
+    pub critic: Box<dyn Critic>,
     /// `beta((k + 1/2) / K)`, `k = 0..K`: the distorted value is the mean of `Z` here.
     pub value_taus: Vec<f32>,
     /// The empirical observation normaliser every inference call applies first
@@ -50,7 +29,7 @@ pub struct ActorCritic {
 impl ActorCritic {
     pub fn new(
         actor: GaussianActor,
-        critic: Critic,
+        critic: Box<dyn Critic>,
         distortion: Distortion,
         num_value_taus: usize,
     ) -> Self {
@@ -125,32 +104,15 @@ impl ActorCritic {
     /// critic has no distribution: it returns `V(s)` for every tau.
     pub fn value_quantiles(&self, obs: &[f32], taus: &[f32]) -> Vec<f32> {
         let n = self.rows(obs);
-        let obs = &self.input(obs);
-        match &self.critic {
-            Critic::Iqn(c) => c.quantiles(obs, n, taus),
-            Critic::Scalar(c) => c
-                .values(obs, n)
-                .iter()
-                .flat_map(|&v| std::iter::repeat_n(v, taus.len()))
-                .collect(),
-        }
+        self.critic.value_quantiles(&self.input(obs), n, taus)
     }
 
     /// The value the actor follows: `V_beta(s)` (e.g. `CVaR_eta(Z(s))`) on the fixed
     /// grid for the IQN critic, `V(s)` for the scalar critic. `n` values.
     pub fn distorted_value(&self, obs: &[f32]) -> Vec<f32> {
         let n = self.rows(obs);
-        let obs = &self.input(obs);
-        match &self.critic {
-            Critic::Iqn(c) => {
-                let k = self.value_taus.len();
-                let z = c.quantiles(obs, n, &self.value_taus);
-                z.chunks_exact(k)
-                    .map(|r| r.iter().sum::<f32>() / k as f32)
-                    .collect()
-            }
-            Critic::Scalar(c) => c.values(obs, n),
-        }
+        self.critic
+            .distorted_value(&self.input(obs), n, &self.value_taus)
     }
 
     /// `IQR(s) = Z_0.75(s) - Z_0.25(s)` (0 for the scalar critic), `n` values.

@@ -1,14 +1,15 @@
 //! The facade the runner calls: [`Learner`] owns the networks, the optimizer and
 //! the update RNG; [`LearnerConfig`] holds every hyper-parameter.
 
-use super::actor_critic::{ActorCritic, Critic};
+use super::actor_critic::ActorCritic;
 use super::adam::AdamState;
 pub use super::adaptation::AdaptationConfig;
 use super::adaptation::{self, adaptation_offset, AdaptationOptimizer, Regression};
 pub use super::checkpoint::NamedTensor;
 use super::collective::{Collective, SingleProcess};
+use super::critic::CriticKind;
 use super::layout::ObsLayout;
-use super::nets::{GaussianActor, InputSel, IqnCritic, LatentSource, ParamSet, ScalarCritic};
+use super::nets::{GaussianActor, InputSel, LatentSource, ParamSet};
 use super::normalizer::EmpiricalNormalizer;
 use super::ppo::{
     self, check_count, check_f32, CriticLossConfig, Optimizer, PpoConfig, UpdateStats, Workspace,
@@ -19,16 +20,6 @@ use anyhow::{bail, ensure, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-
-/// Which critic the actor follows.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum CriticKind {
-    /// IQN value distribution `Z(s)`; the actor follows its distorted value (RALL).
-    Iqn,
-    /// Scalar `V(s)` (risk-neutral PPO baseline).
-    Scalar,
-}
 
 /// RMA's encoder: `z = MLP(group)`, appended to the actor's inputs (phase 1).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -146,23 +137,23 @@ impl Default for LearnerConfig {
 
 impl LearnerConfig {
     /// The distortion the actor follows: `distortion`, else `CVaR_cvar_eta`
-    /// (`cvar_eta` defaults to [`DEFAULT_CVAR_ETA`]). The scalar critic has no
-    /// distribution: it follows `V(s)`, i.e. `CVaR_1`.
+    /// (`cvar_eta` defaults to [`DEFAULT_CVAR_ETA`]). A critic without quantiles
+    /// (the scalar one) has no distribution: it follows `V(s)`, i.e. `CVaR_1`.
     pub fn distortion(&self) -> Distortion {
-        match (self.critic, self.distortion) {
-            (CriticKind::Scalar, _) => Distortion::Cvar { eta: 1.0 },
-            (CriticKind::Iqn, Some(d)) => d,
-            (CriticKind::Iqn, None) => Distortion::Cvar {
+        match self.distortion {
+            _ if !self.critic.has_quantiles() => Distortion::Cvar { eta: 1.0 },
+            Some(d) => d,
+            None => Distortion::Cvar {
                 eta: self.cvar_eta.unwrap_or(DEFAULT_CVAR_ETA),
             },
         }
     }
 
     /// Short name of the risk measure, for run names and tables:
-    /// `eta0.5`, `wang-0.75`, `scalar`.
+    /// `eta0.5`, `wang-0.75`, or the name of a critic without quantiles (`scalar`).
     pub fn risk_label(&self) -> String {
         match self.distortion() {
-            _ if self.critic == CriticKind::Scalar => "scalar".into(),
+            _ if !self.critic.has_quantiles() => self.critic.name().into(),
             Distortion::Cvar { eta } => format!("eta{eta}"),
             Distortion::Wang { lambda } => format!("wang{lambda}"),
         }
@@ -174,15 +165,16 @@ impl LearnerConfig {
                 "learner.cvar_eta ({eta}) and learner.distortion ({d:?}) are both set: the actor follows one distortion; keep one of the two keys"
             );
         }
-        if self.critic == CriticKind::Scalar {
+        if !self.critic.has_quantiles() {
+            let critic = self.critic;
             if let Some(d) = self.distortion {
                 bail!(
-                    "learner.critic = \"scalar\" has no value distribution, so learner.distortion ({d:?}) would be ignored: remove it or use critic = \"iqn\""
+                    "learner.critic = \"{critic}\" has no value distribution, so learner.distortion ({d:?}) would be ignored: remove it or use critic = \"iqn\""
                 );
             }
             if let Some(eta) = self.cvar_eta.filter(|&e| e != 1.0) {
                 bail!(
-                    "learner.critic = \"scalar\" follows V(s) (CVaR_1), so learner.cvar_eta = {eta} would be ignored: remove it or use critic = \"iqn\""
+                    "learner.critic = \"{critic}\" follows V(s) (CVaR_1), so learner.cvar_eta = {eta} would be ignored: remove it or use critic = \"iqn\""
                 );
             }
         }
@@ -415,19 +407,7 @@ impl Learner {
             cfg.init_noise_std,
             &mut rng,
         );
-        let critic = match cfg.critic {
-            CriticKind::Iqn => Critic::Iqn(IqnCritic::with_input(
-                critic_in,
-                &cfg.critic_hidden,
-                cfg.num_cos,
-                &mut rng,
-            )),
-            CriticKind::Scalar => Critic::Scalar(ScalarCritic::with_input(
-                critic_in,
-                &cfg.critic_hidden,
-                &mut rng,
-            )),
-        };
+        let critic = cfg.critic.build(critic_in, cfg, &mut rng)?;
         if cfg.actor_output_init_scale != 1.0 {
             actor.scale_output_layer(cfg.actor_output_init_scale);
         }

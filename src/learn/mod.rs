@@ -4,6 +4,8 @@
 //!
 //! - [`nets`]: Gaussian actor, IQN critic, scalar critic (hand-written backward
 //!   over [`mat`]'s GEMM; see `mat` for why not dfdx autograd).
+//! - [`critic`]: the [`Critic`] trait the update trains, and the registry of
+//!   critics by name (`learner.critic`).
 //! - [`risk`]: distortions (CVaR, Wang), IQR, quantile Huber loss.
 //! - [`storage`]: rollout buffer, GAE, IQN targets (construction documented there).
 //! - [`ppo`]: the update.
@@ -47,6 +49,7 @@ pub mod amx;
 pub mod bf16_avx512;
 pub mod checkpoint;
 pub mod collective;
+pub mod critic;
 pub mod layout;
 pub mod learner;
 pub mod mat;
@@ -56,16 +59,15 @@ pub mod ppo;
 pub mod risk;
 pub mod storage;
 
-pub use actor_critic::{ActorCritic, Critic};
+pub use actor_critic::ActorCritic;
 pub use checkpoint::{
     decode_checkpoint, load_checkpoint, parse_checkpoint, read_checkpoint, save_checkpoint,
     save_checkpoint_with, Checkpoint,
 };
 pub use collective::{Collective, SingleProcess};
+pub use critic::{register, Critic, CriticKind, CriticSpec};
 pub use layout::{gather_columns, relayout_rows, ObsLayout};
-pub use learner::{
-    AdaptationConfig, CriticKind, EncoderConfig, Learner, LearnerConfig, NamedTensor,
-};
+pub use learner::{AdaptationConfig, EncoderConfig, Learner, LearnerConfig, NamedTensor};
 pub use nets::LatentSource;
 pub use normalizer::EmpiricalNormalizer;
 pub use ppo::{GradClip, LrSchedule, PpoConfig, UpdateStats, UpdateTimes};

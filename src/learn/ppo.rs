@@ -11,13 +11,13 @@
 //! gradients, KL and loss statistics are averaged over the ranks before the
 //! clip: every rank takes the same Adam step as one process would on the union.
 
-use super::actor_critic::{ActorCritic, Critic, HALF_LN_2PI};
+use super::actor_critic::{ActorCritic, HALF_LN_2PI};
 use super::adam::{AdamConfig, AdamState};
 use super::collective::Collective;
+use super::critic::{CriticCache, LossInput, TargetInput, Targets};
 use super::mat::{add_assign, serial, with_precision, Precision};
-use super::nets::{IqnCache, MlpCache};
-use super::risk::{midpoint_taus, quantile_huber_loss};
-use super::storage::{gae, next_values, quantile_targets, Rollout};
+use super::nets::MlpCache;
+use super::storage::Rollout;
 use anyhow::Result;
 use rand::seq::SliceRandom;
 use rand::Rng;
@@ -279,16 +279,11 @@ pub struct Workspace {
 }
 
 /// Buffers of the once-per-update critic pass over the whole rollout (kept:
-/// fresh allocations of this size cost page faults every update). One cache per
-/// batch (the rollout, the states after it, the episodes' final states), so that
-/// each keeps its size from update to update instead of being shrunk by the
-/// small batches and zero-filled back to the rollout's size by the next update.
+/// fresh allocations of this size cost page faults every update).
 #[derive(Clone, Debug, Default)]
 struct TargetScratch {
     finals: Vec<f32>,
-    mlp: [MlpCache; 3],
-    iqn: [IqnCache; 3],
-    taus: Vec<f32>,
+    critic: CriticCache,
 }
 
 /// One mini-batch gathered from the rollout (rows in shuffled order).
@@ -302,8 +297,8 @@ struct MiniBatch {
     /// Normalised advantages.
     adv: Vec<f32>,
     vtarget: Vec<f32>,
-    /// IQN: the mini-batch's taus, shared by all its samples.
-    taus: Vec<f32>,
+    /// The critic's samples shared by every row (IQN: the mini-batch's taus).
+    critic_samples: Vec<f32>,
 }
 
 /// One thread's share of a mini-batch: a contiguous block of its rows, with
@@ -312,8 +307,7 @@ struct MiniBatch {
 struct Shard {
     rows: std::ops::Range<usize>,
     actor_cache: MlpCache,
-    scalar_cache: MlpCache,
-    iqn_cache: IqnCache,
+    critic_cache: CriticCache,
     std: Vec<f32>,
     d_mu: Vec<f32>,
     d_log_std: Vec<f32>,
@@ -327,13 +321,6 @@ struct Shard {
     /// Already weighted by the shard's share of the mini-batch.
     value_loss: f64,
     time: UpdateTimes,
-}
-
-/// Per-transition training targets computed once per update.
-struct Targets {
-    adv: Vec<f32>,
-    /// Scalar: `returns = A + V` (`T*E`); IQN: `N'` target samples per transition.
-    value_targets: Vec<f32>,
 }
 
 /// `out = src[idx[k]]` rows of `width` values (reusing `out`'s capacity).
@@ -350,7 +337,7 @@ fn sum_sq(g: &[f32]) -> f64 {
 }
 
 /// Scales `g` by `s`.
-fn scale(g: &mut [f32], s: f32) {
+pub(crate) fn scale(g: &mut [f32], s: f32) {
     g.iter_mut().for_each(|g| *g *= s);
 }
 
@@ -397,59 +384,17 @@ fn targets(
     scratch: &mut TargetScratch,
     rng: &mut impl Rng,
 ) -> Targets {
-    let TargetScratch {
-        finals,
-        mlp,
-        iqn,
-        taus,
-    } = scratch;
+    let TargetScratch { finals, critic } = scratch;
     finals.clear();
     finals.extend(r.final_obs.iter().flat_map(|(_, o)| o.iter().copied()));
-    match &ac.critic {
-        Critic::Scalar(c) => {
-            let v = |o: &[f32], cache: &mut MlpCache| {
-                c.forward(o, o.len() / r.obs_dim, cache);
-                cache.output().to_vec()
-            };
-            let [m_rollout, m_last, m_finals] = mlp;
-            let values = v(&r.obs, m_rollout);
-            let (last, fin) = (v(&r.last_obs, m_last), v(finals, m_finals));
-            let next = next_values(r, 1, &values, &last, &fin);
-            let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
-            let returns = adv.iter().zip(&values).map(|(a, v)| a + v).collect();
-            Targets {
-                adv,
-                value_targets: returns,
-            }
-        }
-        Critic::Iqn(c) => {
-            // one trunk pass per state: the value grid and the target grid together
-            let k = ac.value_taus.len();
-            let nt = ccfg.num_target_taus;
-            taus.clear();
-            taus.extend(ac.value_taus.iter().copied().chain(midpoint_taus(nt)));
-            let split = |o: &[f32], cache: &mut IqnCache| {
-                let z = c.forward(o, o.len() / r.obs_dim, taus, cache);
-                let mut v = Vec::with_capacity(z.len() / (k + nt));
-                let mut q = Vec::with_capacity(z.len() / (k + nt) * nt);
-                for row in z.chunks_exact(k + nt) {
-                    v.push(row[..k].iter().sum::<f32>() / k as f32);
-                    q.extend_from_slice(&row[k..]);
-                }
-                (v, q)
-            };
-            let [i_rollout, i_last, i_finals] = iqn;
-            let (values, z) = split(&r.obs, i_rollout);
-            let (last_v, last_z) = split(&r.last_obs, i_last);
-            let (fin_v, fin_z) = split(finals, i_finals);
-            let next = next_values(r, 1, &values, &last_v, &fin_v);
-            let adv = gae(r, &values, &next, cfg.gamma, cfg.lam);
-            let next_z = next_values(r, nt, &z, &last_z, &fin_z);
-            let value_targets =
-                quantile_targets(r, &next_z, nt, cfg.gamma, ccfg.target_lambda, rng);
-            Targets { adv, value_targets }
-        }
-    }
+    let input = TargetInput {
+        rollout: r,
+        finals,
+        value_taus: &ac.value_taus,
+        cfg,
+        ccfg,
+    };
+    ac.critic.targets(&input, critic, rng)
 }
 
 /// Seconds between the laps of the update's phases.
@@ -526,7 +471,7 @@ pub fn update(
             gather_mini_batch(mb, r, &tg, batch);
             let global = global_norm.then(|| &moments[3 * k..3 * k + 3]);
             normalize_advantages(&mut mb.adv, global, cfg.normalize_advantage_per_mini_batch);
-            draw_taus(&mut mb.taus, ac, ccfg, rng);
+            draw_critic_samples(&mut mb.critic_samples, ac, ccfg, rng);
             time.gather_s += watch.lap();
 
             let b = batch.len();
@@ -628,12 +573,15 @@ fn normalize_advantages(adv: &mut [f32], global_moments: Option<&[f64]>, per_min
     }
 }
 
-/// IQN: the mini-batch's `N` taus ~ U[0, 1] (none for the scalar critic).
-fn draw_taus(taus: &mut Vec<f32>, ac: &ActorCritic, ccfg: &CriticLossConfig, rng: &mut impl Rng) {
-    taus.clear();
-    if matches!(ac.critic, Critic::Iqn(_)) {
-        taus.extend((0..ccfg.num_taus).map(|_| rng.gen::<f32>()));
-    }
+/// The critic's samples for one mini-batch (IQN: `N` taus ~ U[0, 1]).
+fn draw_critic_samples(
+    samples: &mut Vec<f32>,
+    ac: &ActorCritic,
+    ccfg: &CriticLossConfig,
+    rng: &mut impl Rng,
+) {
+    samples.clear();
+    ac.critic.draw_samples(samples, ccfg, rng);
 }
 
 /// Forward, losses and backward of the mini-batch's `b` rows, one shard of rows
@@ -851,12 +799,8 @@ fn shard_pass(
 
     // ---- forward ----
     ac.actor.forward(obs, n, &mut sh.actor_cache);
-    match &ac.critic {
-        Critic::Iqn(c) => {
-            c.forward(obs, n, &mb.taus, &mut sh.iqn_cache);
-        }
-        Critic::Scalar(c) => c.forward(obs, n, &mut sh.scalar_cache),
-    }
+    ac.critic
+        .forward_mini_batch(obs, n, &mb.critic_samples, &mut sh.critic_cache);
     sh.time.forward_s = watch.lap();
 
     // ---- losses and their output gradients ----
@@ -871,16 +815,13 @@ fn shard_pass(
     for (g, d) in sh.g_actor[off..off + ad].iter_mut().zip(&sh.d_log_std) {
         *g += d;
     }
-    match &ac.critic {
-        Critic::Iqn(c) => c.backward(&mut sh.g_critic, obs, n, &mut sh.iqn_cache, &sh.d_value),
-        Critic::Scalar(c) => c.backward(
-            &mut sh.g_critic,
-            obs,
-            n,
-            &mut sh.scalar_cache,
-            &mut sh.d_value,
-        ),
-    }
+    ac.critic.backward_mini_batch(
+        &mut sh.g_critic,
+        obs,
+        n,
+        &mut sh.critic_cache,
+        &mut sh.d_value,
+    );
     sh.time.backward_s = watch.lap();
 }
 
@@ -960,29 +901,17 @@ fn value_loss_and_gradient(
     cfg: &PpoConfig,
     ccfg: &CriticLossConfig,
 ) {
-    let n = sh.rows.len();
-    let share = n as f32 / b as f32;
-    match &ac.critic {
-        Critic::Iqn(_) => {
-            let z = sh.iqn_cache.output();
-            sh.d_value.clear();
-            sh.d_value.resize(z.len(), 0.0);
-            // the loss averages over this shard's rows: rescale to the mini-batch
-            let loss = quantile_huber_loss(z, &mb.taus, vtarget, ccfg.kappa, &mut sh.d_value);
-            scale(&mut sh.d_value, cfg.value_loss_coef * share);
-            sh.value_loss = (loss * share) as f64;
-        }
-        Critic::Scalar(_) => {
-            let v = sh.scalar_cache.output();
-            let mut loss = 0.0f64;
-            sh.d_value.clear();
-            sh.d_value.extend(v.iter().zip(vtarget).map(|(v, t)| {
-                loss += ((t - v) * (t - v)) as f64;
-                cfg.value_loss_coef * 2.0 * (v - t) / b as f32
-            }));
-            sh.value_loss = loss / b as f64;
-        }
-    }
+    let input = LossInput {
+        samples: &mb.critic_samples,
+        targets: vtarget,
+        rows: sh.rows.len(),
+        batch: b,
+        cfg,
+        ccfg,
+    };
+    sh.value_loss = ac
+        .critic
+        .value_loss(&input, &mut sh.critic_cache, &mut sh.d_value);
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 //! their mean, the distorted value the actor follows and the IQR, from one critic
 //! evaluation.
 
-use crate::learn::{ActorCritic, CriticKind, Distortion, Learner};
+use crate::learn::{ActorCritic, Distortion, Learner};
 
 /// Bars of the quantile chart by default.
 pub const DEFAULT_NUM_BARS: usize = 32;
@@ -28,7 +28,8 @@ pub struct ValueReading {
 /// and the IQR are exactly [`Learner::distorted_value`] and [`Learner::iqr`].
 #[derive(Debug, Clone)]
 pub struct ValueProbe {
-    kind: CriticKind,
+    /// The critic has quantiles to chart (else it reads `V(s)` alone).
+    quantiles: bool,
     taus: Vec<f32>,
     all_taus: Vec<f32>,
     num_value: usize,
@@ -39,20 +40,20 @@ impl ValueProbe {
     /// A probe with `num_bars` midpoint taus `(i + 1/2) / num_bars` for the chart.
     pub fn new(learner: &Learner, num_bars: usize) -> ValueProbe {
         let cfg = learner.config();
-        let label = match (cfg.critic, cfg.distortion()) {
-            (CriticKind::Scalar, _) => "V".to_string(),
-            (_, Distortion::Cvar { eta }) => format!("CVaR_{eta}"),
-            (_, Distortion::Wang { lambda }) => format!("Wang_{lambda}"),
+        let label = match cfg.distortion() {
+            _ if !cfg.critic.has_quantiles() => "V".to_string(),
+            Distortion::Cvar { eta } => format!("CVaR_{eta}"),
+            Distortion::Wang { lambda } => format!("Wang_{lambda}"),
         };
-        match cfg.critic {
-            CriticKind::Scalar => ValueProbe {
-                kind: CriticKind::Scalar,
+        match cfg.critic.has_quantiles() {
+            false => ValueProbe {
+                quantiles: false,
                 taus: vec![],
                 all_taus: vec![],
                 num_value: 0,
                 label,
             },
-            CriticKind::Iqn => {
+            true => {
                 let taus: Vec<f32> = (0..num_bars)
                     .map(|i| (i as f32 + 0.5) / num_bars as f32)
                     .collect();
@@ -61,7 +62,7 @@ impl ValueProbe {
                 all.extend_from_slice(value_taus);
                 all.extend_from_slice(&[0.25, 0.75]);
                 ValueProbe {
-                    kind: CriticKind::Iqn,
+                    quantiles: true,
                     taus,
                     all_taus: all,
                     num_value: value_taus.len(),
@@ -99,8 +100,8 @@ impl ValueProbe {
         if obs.is_empty() {
             return Vec::new();
         }
-        match self.kind {
-            CriticKind::Scalar => learner
+        match self.quantiles {
+            false => learner
                 .distorted_value(obs)
                 .into_iter()
                 .map(|v| ValueReading {
@@ -110,7 +111,7 @@ impl ValueProbe {
                     iqr: 0.0,
                 })
                 .collect(),
-            CriticKind::Iqn => {
+            true => {
                 let z = learner.value_quantiles(obs, &self.all_taus);
                 let nb = self.taus.len();
                 z.chunks_exact(self.all_taus.len())
