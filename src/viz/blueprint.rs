@@ -29,7 +29,7 @@ pub const TRAIN_APP_ID: &str = "rall-train";
 
 /// A view property the builder cannot set, logged at `{view}/{name}`.
 enum ViewProperty {
-    Eye(EyeControls3D),
+    Eye(Box<EyeControls3D>),
     Legend(PlotLegend),
 }
 
@@ -126,7 +126,7 @@ impl Layout {
         prop.set_time_sequence("blueprint", 0);
         for (view, p) in &self.props {
             match p {
-                ViewProperty::Eye(eye) => prop.log(format!("{view}/EyeControls3D"), eye),
+                ViewProperty::Eye(eye) => prop.log(format!("{view}/EyeControls3D"), &**eye),
                 ViewProperty::Legend(legend) => prop.log(format!("{view}/PlotLegend"), legend),
             }
             .context("logging a view property")?;
@@ -153,13 +153,13 @@ fn robot_view(props: &mut Properties) -> ContainerLike {
     if let ContainerLike::View(v) = &view {
         props.push((
             v.blueprint_path().to_string(),
-            ViewProperty::Eye(
+            ViewProperty::Eye(Box::new(
                 EyeControls3D::new()
                     .with_kind(Eye3DKind::Orbital)
                     .with_position(EYE_POSITION_M)
                     .with_look_target(EYE_TARGET_M)
                     .with_tracking_entity(FOLLOWED_ENTITY),
-            ),
+            )),
         ));
     }
     view
