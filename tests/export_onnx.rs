@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use rall::env::{ACT_DIM, OBS_DIM};
+use rall::eval::{Actor, OnnxPolicy};
 use rall::export::{export, export_learner, sidecar_path, ExportOptions, REFERENCE_TOLERANCE};
 use rall::learn::{Learner, NamedTensor};
 use rall::runner::load_policy;
@@ -104,10 +105,11 @@ fn tract_runs_the_exported_policy_to_rall_actions() {
     assert!(obs[36..48].iter().all(|&a| a == 0.0));
 }
 
-/// A policy trained with `learner.obs_normalization` exports with the
-/// statistics folded into its first layer: the graph reads raw observations.
+/// A policy trained with `learner.obs_normalization` exports with its normaliser
+/// as the graph's first nodes: the graph reads raw observations, and rall's own
+/// forward of the export gives the checkpoint's actions bit for bit.
 #[test]
-fn a_normalised_policy_exports_with_its_statistics_folded_in() {
+fn a_normalised_policy_exports_with_its_normaliser_in_the_graph() {
     let dir = tempfile::tempdir().unwrap();
     let onnx = dir.path().join("normalised.onnx");
     let ckpt = trained_checkpoint();
@@ -145,7 +147,7 @@ fn a_normalised_policy_exports_with_its_statistics_folded_in() {
     .unwrap();
     let sidecar: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(sidecar_path(&onnx)).unwrap()).unwrap();
-    assert_eq!(sidecar["onnx"]["normalizer"]["kind"], "folded");
+    assert_eq!(sidecar["onnx"]["normalizer"]["kind"], "in_graph");
     let obs = rows(&sidecar["reference"]["observations"], OBS_DIM);
     let actions = rows(&sidecar["reference"]["actions"], ACT_DIM);
     assert!(max_abs_diff(&learner.act_mean(&obs), &actions) <= 1e-6);
@@ -153,6 +155,9 @@ fn a_normalised_policy_exports_with_its_statistics_folded_in() {
     assert!(max_abs_diff(&loaded.learner.act_mean(&obs), &actions) > 1e-2);
     let d = max_abs_diff(&run_tract(&onnx, &obs), &actions);
     assert!(d as f64 <= REFERENCE_TOLERANCE, "tract differs by {d}");
+    let exact = OnnxPolicy::load(&onnx).unwrap();
+    assert!(exact.runs_on_rall_forward());
+    assert_eq!(exact.actions(&obs).unwrap(), learner.act_mean(&obs));
 }
 
 #[test]

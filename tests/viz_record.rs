@@ -14,7 +14,7 @@ use rall::env::terrain::{TerrainKind, TerrainProportions};
 use rall::env::{ACT_DIM, OBS_DIM};
 use rall::learn::{CriticKind, Learner};
 use rall::runner::{save_policy, Progress};
-use rall::viz::episode::{bar_widths, VALUE_EVERY_FRAMES};
+use rall::viz::episode::{bar_widths, centred, VALUE_EVERY_FRAMES};
 use rall::viz::{
     self, PlayOptions, RerunTarget, RrdSummary, TrainRecorder, TrainRecordingOptions, ValueProbe,
 };
@@ -614,4 +614,9 @@ fn quantile_bars_tile_the_unit_interval() {
         assert!(tau - w / 2.0 >= -1e-6 && tau + w / 2.0 <= 1.0 + 1e-6);
     }
     assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+    // The bars are Z_tau(s) minus their mean (rerun starts bars at 0): they sum to 0.
+    let r = probe.read(&l, &vec![0.2; l.obs_dim()]);
+    let bars = centred(&r.quantiles, r.mean);
+    assert_eq!(bars.len(), 32);
+    assert!(bars.iter().sum::<f32>().abs() < 1e-4, "{bars:?}");
 }

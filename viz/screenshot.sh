@@ -3,7 +3,7 @@
 #
 #   viz/screenshot.sh RECORDING.rrd OUT.png [WIDTHxHEIGHT]
 #
-# Needs: the viewer (pip install "rerun-sdk==0.36.3"), Xvfb and a Vulkan driver
+# Needs: the viewer (pip install "rerun-sdk==0.36.3"), python3, Xvfb and a Vulkan driver
 # that runs without a GPU (Debian: apt-get install xvfb mesa-vulkan-drivers, which
 # brings lavapipe). Xvfb runs with `-extension Composite` (Composite disabled):
 # with Composite on, the viewer's window stays black. rerun's GL backend refuses
@@ -36,19 +36,38 @@ display=99
 while [ -e "/tmp/.X11-unix/X$display" ] || [ -e "/tmp/.X$display-lock" ]; do
   display=$((display + 1))
 done
-# The screen is twice the window's size (plus a pixel): X starts the pointer at the
-# screen's centre, just outside the window's bottom-right corner, so no hover
-# tooltip covers the 3D view (xdotool cannot move Xvfb's pointer).
+# The screen is twice the window's size (plus two pixels). X starts the pointer at
+# the screen's centre, which the viewer's window covers (at a scale factor of 2 it
+# fills the screen), and its hover tooltip would show in the picture: the pointer is
+# moved to the screen's bottom-right pixel, outside the window, before the viewer
+# starts. `-noreset` keeps it there: Xvfb resets the pointer when its last client
+# disconnects.
 width="${size%x*}"
 height="${size#*x}"
 screen="$((2 * width + 2))x$((2 * height + 2))"
-Xvfb ":$display" -screen 0 "${screen}x24" -extension Composite >/dev/null 2>&1 &
+Xvfb ":$display" -screen 0 "${screen}x24" -extension Composite -noreset >/dev/null 2>&1 &
 xvfb_pid=$!
 trap 'kill "$xvfb_pid" 2>/dev/null || true' EXIT
 for _ in $(seq 50); do
   [ -e "/tmp/.X11-unix/X$display" ] && break
   sleep 0.1
 done
+# XWarpPointer through libX11 (no xdotool needed).
+DISPLAY=":$display" python3 - "$((2 * width + 1))" "$((2 * height + 1))" <<'PY' || echo "$0: could not move the pointer; a tooltip may show" >&2
+import ctypes, sys
+x11 = ctypes.CDLL("libX11.so.6")
+x11.XOpenDisplay.restype = ctypes.c_void_p
+x11.XDefaultRootWindow.restype = ctypes.c_ulong
+x11.XDefaultRootWindow.argtypes = [ctypes.c_void_p]
+x11.XWarpPointer.argtypes = [ctypes.c_void_p, ctypes.c_ulong, ctypes.c_ulong] + [ctypes.c_int] * 2 + [ctypes.c_uint] * 2 + [ctypes.c_int] * 2
+x11.XFlush.argtypes = [ctypes.c_void_p]
+dpy = x11.XOpenDisplay(None)
+if not dpy:
+    raise SystemExit(1)
+x, y = int(sys.argv[1]), int(sys.argv[2])
+x11.XWarpPointer(dpy, 0, x11.XDefaultRootWindow(dpy), 0, 0, 0, 0, x, y)
+x11.XFlush(dpy)
+PY
 
 # lavapipe is the only Vulkan device here; WAYLAND_DISPLAY unset so winit uses X11.
 mkdir -p "$(dirname "$out")"

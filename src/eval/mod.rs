@@ -13,6 +13,7 @@ pub mod mjcf;
 pub mod platform;
 pub mod policy;
 pub mod race;
+pub mod rall_graph;
 pub mod report;
 pub mod risk_calibration;
 pub mod rollout;
@@ -24,7 +25,7 @@ pub mod ttf;
 
 pub use falls::{critic_before_falls, FallReport, QuantileMeans, FALL_TAUS};
 pub use platform::{evaluate_platform, DropOutcome, DropWatch, PlatformOptions, PlatformReport};
-pub use policy::{is_onnx, Actor, OnnxPolicy, Policy};
+pub use policy::{is_onnx, Actor, OnnxPolicy, OnnxRuntime, Policy};
 pub use race::{evaluate_race, MetaArg, MetaConfig, MetaSwitch, RaceOptions, RaceReport};
 pub use rollout::{run_first_episodes, FirstEpisode, NamedPolicy, ScenarioRun};
 pub use scenario::{

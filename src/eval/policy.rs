@@ -1,6 +1,8 @@
 //! What acts in a benchmark: a rall checkpoint's Gaussian mean, or an ONNX
 //! network (with its JSON sidecar) trained anywhere. Benchmarks ask an
 //! [`Actor`] for actions and never branch on where the policy came from.
+//! rall's own exports run through rall's actor forward (see [`super::rall_graph`]),
+//! so they give their checkpoint's numbers bit for bit; other graphs run through tract.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -8,6 +10,7 @@ use std::sync::Arc;
 use anyhow::{bail, ensure, Context, Result};
 use tract_onnx::prelude::*;
 
+use super::rall_graph::RallGraph;
 use super::sidecar::{read_sidecar, SidecarPolicy};
 use crate::env::{EnvConfig, ACT_DIM, OBS_DIM};
 use crate::learn::Learner;
@@ -59,11 +62,11 @@ pub fn is_onnx(path: &Path) -> bool {
         .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
 }
 
-/// An ONNX policy run by tract: one input `obs` (`batch x width`), one output
-/// (`batch x 12` raw actions), the input gathered from rall's observation row
-/// as the sidecar lays it out.
+/// An ONNX policy: one input `obs` (`batch x width`), one output (`batch x 12`
+/// raw actions), the input gathered from rall's observation row as the sidecar
+/// lays it out.
 pub struct OnnxPolicy {
-    plan: Arc<TypedRunnableModel>,
+    network: Network,
     /// `input[k] = rall_obs[columns[k]]`.
     columns: Vec<usize>,
     /// `rall_action[joint_order[k]] = output[k]`.
@@ -74,11 +77,34 @@ pub struct OnnxPolicy {
     pub defaulted: Vec<&'static str>,
 }
 
+/// What runs an ONNX graph.
+enum Network {
+    /// rall's own export, by rall's actor forward (bit-identical to the checkpoint).
+    Rall(Box<RallGraph>),
+    /// Any other graph, by tract.
+    Tract(Arc<TypedRunnableModel>),
+}
+
+/// Which runtime [`OnnxPolicy::load_with`] uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OnnxRuntime {
+    /// rall's actor forward for a graph of rall's own export form, tract otherwise.
+    Auto,
+    /// tract for every graph.
+    Tract,
+}
+
 impl OnnxPolicy {
-    /// Loads `path` (.onnx) and its sidecar (`.json` beside it).
+    /// Loads `path` (.onnx) and its sidecar (`.json` beside it); rall's own
+    /// exports run through rall's actor forward, other graphs through tract.
     pub fn load(path: &Path) -> Result<OnnxPolicy> {
+        OnnxPolicy::load_with(path, OnnxRuntime::Auto)
+    }
+
+    /// [`Self::load`], choosing the runtime.
+    pub fn load_with(path: &Path, runtime: OnnxRuntime) -> Result<OnnxPolicy> {
         let side = read_sidecar(&crate::export::sidecar_path(path))?;
-        let plan = load_plan(path, side.input_columns.len())
+        let network = load_network(path, side.input_columns.len(), runtime)
             .with_context(|| format!("ONNX policy {}", path.display()))?;
         let SidecarPolicy {
             env,
@@ -87,7 +113,7 @@ impl OnnxPolicy {
             defaulted,
         } = side;
         let policy = OnnxPolicy {
-            plan,
+            network,
             columns: input_columns,
             joint_order,
             env,
@@ -104,6 +130,37 @@ impl OnnxPolicy {
     pub fn input_width(&self) -> usize {
         self.columns.len()
     }
+
+    /// Whether rall's actor forward runs the graph (rall's own export form);
+    /// otherwise tract does.
+    pub fn runs_on_rall_forward(&self) -> bool {
+        matches!(self.network, Network::Rall(_))
+    }
+
+    /// The network's raw output for `n` input rows (`n x width`), `n x ACT_DIM`.
+    fn run(&self, input: Vec<f32>, n: usize) -> Result<Vec<f32>> {
+        let w = self.columns.len();
+        let out = match &self.network {
+            Network::Rall(g) => g.actions(&input, n),
+            Network::Tract(plan) => {
+                let x = tract_ndarray::Array2::from_shape_vec((n, w), input)?;
+                let out = plan.run(tvec!(Tensor::from(x).into()))?;
+                let view = out[0].to_plain_array_view::<f32>()?;
+                ensure!(
+                    view.shape() == [n, ACT_DIM],
+                    "the network returned shape {:?} for {n} observations, expected [{n}, {ACT_DIM}]",
+                    view.shape()
+                );
+                view.as_slice().context("a contiguous output")?.to_vec()
+            }
+        };
+        ensure!(
+            out.len() == n * ACT_DIM,
+            "the network returned {} values for {n} observations, expected {n} x {ACT_DIM}",
+            out.len()
+        );
+        Ok(out)
+    }
 }
 
 impl Actor for OnnxPolicy {
@@ -119,26 +176,35 @@ impl Actor for OnnxPolicy {
         for row in obs.chunks_exact(OBS_DIM) {
             input.extend(self.columns.iter().map(|&c| row[c]));
         }
-        let x = tract_ndarray::Array2::from_shape_vec((n, w), input)?;
-        let out = self.plan.run(tvec!(Tensor::from(x).into()))?;
-        let view = out[0].to_plain_array_view::<f32>()?;
-        ensure!(
-            view.shape() == [n, ACT_DIM],
-            "the network returned shape {:?} for {n} observations, expected [{n}, {ACT_DIM}]",
-            view.shape()
-        );
+        let out = self.run(input, n)?;
         let mut actions = vec![0.0f32; n * ACT_DIM];
-        for (row, out) in actions.chunks_exact_mut(ACT_DIM).zip(
-            view.as_slice()
-                .context("a contiguous output")?
-                .chunks_exact(ACT_DIM),
-        ) {
+        for (row, out) in actions
+            .chunks_exact_mut(ACT_DIM)
+            .zip(out.chunks_exact(ACT_DIM))
+        {
             for (k, &j) in self.joint_order.iter().enumerate() {
                 row[j] = out[k];
             }
         }
         Ok(actions)
     }
+}
+
+/// rall's forward for a graph of rall's export form (unless `runtime` asks for
+/// tract), else tract's plan; either checked to take one `batch x width` input.
+fn load_network(path: &Path, width: usize, runtime: OnnxRuntime) -> Result<Network> {
+    if runtime == OnnxRuntime::Auto {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        if let Some(g) = RallGraph::recognise(&bytes) {
+            let w = g.input_width();
+            ensure!(
+                w == width,
+                "the network's input is {w} wide but the sidecar's observation.fields hold {width} values"
+            );
+            return Ok(Network::Rall(Box::new(g)));
+        }
+    }
+    load_plan(path, width).map(Network::Tract)
 }
 
 /// The optimised tract plan of `path`, checked to take one `batch x width` input.

@@ -24,6 +24,7 @@ use serde_json::{json, Value};
 use crate::config::TrainConfig;
 use crate::env::observation::OBS_LAYOUT;
 use crate::env::{build_scene, Env, EnvConfig, ACT_DIM, OBS_DIM};
+use crate::learn::normalizer::STD_EPS;
 use crate::learn::Learner;
 use crate::robot::Robot;
 use crate::runner::{load_policy, Progress};
@@ -33,6 +34,8 @@ use onnx::{Dense, Dim};
 pub const SIDECAR_VERSION: u32 = 2;
 /// Name of the observation input in every exported graph.
 pub const OBS_INPUT: &str = "obs";
+/// Name of the normalised observation inside a graph with a normaliser.
+pub const NORMALIZED_OBS: &str = "obs_normalized";
 /// Name of the history input of a student's graph.
 pub const HISTORY_INPUT: &str = "history";
 /// Name of the action output.
@@ -69,53 +72,35 @@ pub struct ExportReport {
     pub reference_count: usize,
 }
 
-/// An observation normaliser `(obs - mean) / std`, folded into the first layer:
-/// the learner's empirical normaliser (`learner.obs_normalization`), else the
-/// identity. The exported graph reads raw observations either way.
+/// The learner's empirical observation normaliser (`learner.obs_normalization`),
+/// written as the graph's first two nodes `(obs - mean) * inv_std`: the same f32
+/// operations the checkpoint applies, so the graph computes what the checkpoint
+/// computes. (Folding it into the first layer would round differently.)
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObsNormalizer {
     pub mean: Vec<f32>,
-    pub std: Vec<f32>,
+    /// `1 / (sqrt(var) + STD_EPS)`, as the learner computes it from its variance.
+    pub inv_std: Vec<f32>,
 }
 
 impl ObsNormalizer {
-    pub fn identity(dim: usize) -> Self {
-        ObsNormalizer {
-            mean: vec![0.0; dim],
-            std: vec![1.0; dim],
-        }
+    /// The normaliser of `learner`, if it has one.
+    pub fn of_learner(learner: &Learner) -> Option<ObsNormalizer> {
+        let n = learner.obs_normalizer()?;
+        let state = n.state();
+        let var = &state.iter().find(|t| t.name == "obs_norm.var")?.data;
+        Some(ObsNormalizer {
+            mean: n.mean().to_vec(),
+            inv_std: var.iter().map(|v| 1.0 / (v.sqrt() + STD_EPS)).collect(),
+        })
     }
 
-    pub fn is_identity(&self) -> bool {
-        self.mean.iter().all(|&m| m == 0.0) && self.std.iter().all(|&s| s == 1.0)
-    }
-
-    /// Folds the normaliser into `layer` (`y = ((x - m) / s) W + b`):
-    /// `W'[i, j] = W[i, j] / s[i]`, `b'[j] = b[j] - sum_i m[i] / s[i] W[i, j]`.
-    pub fn fold_into(&self, layer: &mut Dense) -> Result<()> {
-        ensure!(
-            self.mean.len() == layer.inp && self.std.len() == layer.inp,
-            "normaliser of size {} / {} does not fit a layer with {} inputs",
-            self.mean.len(),
-            self.std.len(),
-            layer.inp
-        );
-        if let Some(i) = self.std.iter().position(|&s| !(s.is_finite() && s > 0.0)) {
-            bail!("normaliser std[{i}] = {} is not positive", self.std[i]);
-        }
-        let mut shift = vec![0.0f64; layer.out];
-        for i in 0..layer.inp {
-            let inv = 1.0 / self.std[i] as f64;
-            let row = &mut layer.weight[i * layer.out..(i + 1) * layer.out];
-            for (j, w) in row.iter_mut().enumerate() {
-                shift[j] += self.mean[i] as f64 * inv * *w as f64;
-                *w = (*w as f64 * inv) as f32;
-            }
-        }
-        for (b, s) in layer.bias.iter_mut().zip(shift) {
-            *b = (*b as f64 - s) as f32;
-        }
-        Ok(())
+    /// `(x - mean) * inv_std` in f64 (the reference forward pass).
+    fn apply_f64(&self, x: &[f64]) -> Vec<f64> {
+        x.iter()
+            .zip(self.mean.iter().zip(&self.inv_std))
+            .map(|(v, (&m, &s))| (v - m as f64) * s as f64)
+            .collect()
     }
 }
 
@@ -123,8 +108,12 @@ impl ObsNormalizer {
 /// own graph inputs and sidecar description.
 #[derive(Debug, Clone)]
 pub enum PolicyNet {
-    /// The Gaussian actor's mean: `actions = MLP(obs)`, ELU between layers.
-    GaussianMean { layers: Vec<Dense> },
+    /// The Gaussian actor's mean: `actions = MLP(obs)`, ELU between layers, the
+    /// observation normalised first when the learner has a normaliser.
+    GaussianMean {
+        norm: Option<ObsNormalizer>,
+        layers: Vec<Dense>,
+    },
     /// RMA's student: `z = adaptation(history)`, `actions = base([obs, z])`.
     Student {
         adaptation: Vec<Dense>,
@@ -195,8 +184,8 @@ fn mlp_f64(layers: &[Dense], input: &[f64]) -> Vec<f64> {
 }
 
 impl PolicyNet {
-    /// The deployable network of a learner (its actor's mean), with `norm` folded in.
-    pub fn from_learner(learner: &Learner, norm: &ObsNormalizer) -> Result<PolicyNet> {
+    /// The deployable network of a learner (its actor's mean, normalised by `norm`).
+    pub fn from_learner(learner: &Learner, norm: Option<&ObsNormalizer>) -> Result<PolicyNet> {
         let actor = &learner.actor_critic().actor;
         if learner.latent_source() == crate::learn::LatentSource::Adaptation {
             let adaptation = dense_layers(learner, "adapt.")?;
@@ -205,8 +194,8 @@ impl PolicyNet {
             let latent = actor.latent_dim();
             let hist = adaptation[0].inp;
             ensure!(
-                norm.is_identity(),
-                "a student's observation normaliser cannot be folded yet"
+                norm.is_none(),
+                "a student's observation normaliser cannot be exported yet"
             );
             ensure!(
                 base[0].inp == obs_dim + latent
@@ -223,7 +212,7 @@ impl PolicyNet {
                 history_steps: hist / obs_dim,
             });
         }
-        let mut layers = dense_layers(learner, "")?;
+        let layers = dense_layers(learner, "")?;
         let (inp, out) = (layers[0].inp, layers[layers.len() - 1].out);
         ensure!(
             inp == actor.obs_dim && out == actor.act_dim,
@@ -231,8 +220,17 @@ impl PolicyNet {
             actor.obs_dim,
             actor.act_dim
         );
-        norm.fold_into(&mut layers[0])?;
-        Ok(PolicyNet::GaussianMean { layers })
+        if let Some(n) = norm {
+            ensure!(
+                n.mean.len() == inp && n.inv_std.len() == inp,
+                "normaliser of size {} does not fit an actor with {inp} inputs",
+                n.mean.len()
+            );
+        }
+        Ok(PolicyNet::GaussianMean {
+            norm: norm.cloned(),
+            layers,
+        })
     }
 
     pub fn kind(&self) -> &'static str {
@@ -245,7 +243,7 @@ impl PolicyNet {
     /// Graph inputs: (name, shape).
     pub fn inputs(&self) -> Vec<(&'static str, Vec<Dim>)> {
         match self {
-            PolicyNet::GaussianMean { layers } => vec![(
+            PolicyNet::GaussianMean { layers, .. } => vec![(
                 OBS_INPUT,
                 vec![
                     Dim::Named(onnx::BATCH_DIM.into()),
@@ -274,7 +272,7 @@ impl PolicyNet {
 
     pub fn act_dim(&self) -> usize {
         match self {
-            PolicyNet::GaussianMean { layers } => layers[layers.len() - 1].out,
+            PolicyNet::GaussianMean { layers, .. } => layers[layers.len() - 1].out,
             PolicyNet::Student { base, .. } => base[base.len() - 1].out,
         }
     }
@@ -294,8 +292,13 @@ impl PolicyNet {
             g.input.push(onnx::float_value_info(name, &dims, doc));
         }
         match self {
-            PolicyNet::GaussianMean { layers } => {
-                onnx::push_mlp(&mut g, "actor.", layers, OBS_INPUT, ACTION_OUTPUT);
+            PolicyNet::GaussianMean { norm, layers } => {
+                let mut x = OBS_INPUT;
+                if let Some(n) = norm {
+                    onnx::push_normalizer(&mut g, &n.mean, &n.inv_std, x, NORMALIZED_OBS);
+                    x = NORMALIZED_OBS;
+                }
+                onnx::push_mlp(&mut g, "actor.", layers, x, ACTION_OUTPUT);
             }
             PolicyNet::Student {
                 adaptation, base, ..
@@ -356,7 +359,7 @@ impl PolicyNet {
                     "onnx_ops": "Gemm (transB = 0), Elu (alpha 1), Concat (axis 1)",
                 })
             }
-            PolicyNet::GaussianMean { layers } => {
+            PolicyNet::GaussianMean { norm, layers } => {
                 let tensors: Vec<Value> = layers
                     .iter()
                     .enumerate()
@@ -369,19 +372,39 @@ impl PolicyNet {
                     })
                     .collect();
                 let n = layers.len();
+                let h0 = if norm.is_some() {
+                    "(obs - obs_norm.mean) * obs_norm.inv_std"
+                } else {
+                    "obs"
+                };
                 json!({
                     "kind": self.kind(),
                     "formula": format!(
-                        "h_0 = obs; h_(i+1) = elu(h_i W_i + b_i) for i < {last}; actions = h_{last} W_{last} + b_{last}",
+                        "h_0 = {h0}; h_(i+1) = elu(h_i W_i + b_i) for i < {last}; actions = h_{last} W_{last} + b_{last}",
                         last = n - 1
                     ),
                     "activation": "ELU with alpha 1 (elu(x) = x if x > 0 else exp(x) - 1) between layers, none after the last",
                     "layer_sizes": std::iter::once(layers[0].inp).chain(layers.iter().map(|l| l.out)).collect::<Vec<_>>(),
                     "checkpoint_tensors": tensors,
                     "not_exported": "actor.log_std (the Gaussian's log standard deviation; deployment uses the mean), critic.*, adam.*, lr",
-                    "onnx_ops": "Gemm (transB = 0, so W is used as stored) and Elu (alpha 1); initializers named like the checkpoint tensors",
+                    "onnx_ops": "Sub and Mul for the normaliser (when there is one), Gemm (transB = 0, so W is used as stored) and Elu (alpha 1); initializers named like the checkpoint tensors",
                 })
             }
+        }
+    }
+
+    /// The sidecar's `onnx.normalizer`.
+    fn normalizer_json(&self) -> Value {
+        match self {
+            PolicyNet::GaussianMean { norm: Some(_), .. } => json!({
+                "kind": "in_graph",
+                "formula": "(obs - obs_norm.mean) * obs_norm.inv_std, the graph's first nodes (Sub, Mul), with inv_std = 1 / (sqrt(obs_norm.var) + 0.01) from the checkpoint",
+                "note": "the graph's input is the scaled observation below; the normaliser is part of the network, not of the observation builder",
+            }),
+            _ => json!({
+                "kind": "identity",
+                "note": "the policy was trained without an observation normaliser: the network takes the scaled observation below as is",
+            }),
         }
     }
 
@@ -410,8 +433,12 @@ impl PolicyNet {
                 let (o, h) = obs.split_at((*obs_dim).min(obs.len()));
                 self.forward_inputs_f64(&[o, h])
             }
-            PolicyNet::GaussianMean { layers } => {
-                mlp_f64(layers, &obs.iter().map(|&v| v as f64).collect::<Vec<_>>())
+            PolicyNet::GaussianMean { norm, layers } => {
+                let x: Vec<f64> = obs.iter().map(|&v| v as f64).collect();
+                match norm {
+                    Some(n) => mlp_f64(layers, &n.apply_f64(&x)),
+                    None => mlp_f64(layers, &x),
+                }
             }
         }
     }
@@ -550,8 +577,8 @@ pub fn export_learner(
     let groups = env.obs_layout();
     let student = learner.latent_source() == crate::learn::LatentSource::Adaptation;
     check_deployable(student, config, checkpoint)?;
-    let norm = folded_normalizer(learner);
-    let net = PolicyNet::from_learner(learner, &norm)?;
+    let norm = ObsNormalizer::of_learner(learner);
+    let net = PolicyNet::from_learner(learner, norm.as_ref())?;
     ensure!(
         net.act_dim() == ACT_DIM,
         "policy outputs {} actions, the robot has {ACT_DIM}",
@@ -561,7 +588,6 @@ pub fn export_learner(
     let reference = Reference::new(learner, config, opts)?;
     let source = SidecarSource {
         net: &net,
-        norm: &norm,
         progress,
         checkpoint,
         onnx_path,
@@ -610,17 +636,6 @@ fn check_deployable(student: bool, config: &TrainConfig, checkpoint: &Path) -> R
     Ok(())
 }
 
-/// The learner's observation normaliser, to fold into the first layer (identity without one).
-fn folded_normalizer(learner: &Learner) -> ObsNormalizer {
-    match learner.obs_normalizer() {
-        Some(n) => ObsNormalizer {
-            mean: n.mean().to_vec(),
-            std: n.divisor(),
-        },
-        None => ObsNormalizer::identity(learner.obs_dim()),
-    }
-}
-
 /// Reference observations along a rollout of the policy, with its actions for them.
 struct Reference {
     /// Full observation rows (every group).
@@ -665,7 +680,6 @@ fn file_name(p: &Path) -> Option<String> {
 /// What the sidecar says about where the policy came from and its graph.
 struct SidecarSource<'a> {
     net: &'a PolicyNet,
-    norm: &'a ObsNormalizer,
     progress: &'a Progress,
     checkpoint: &'a Path,
     onnx_path: &'a Path,
@@ -705,8 +719,7 @@ fn sidecar_json(
             "outputs": [{"name": ACTION_OUTPUT, "dtype": "float32", "shape": [onnx::BATCH_DIM, net.act_dim()],
                          "meaning": "raw action a (the Gaussian policy's mean): not clipped, not scaled"}],
             "batch_dimension": "dynamic (`batch`); a controller feeds batch 1",
-            "normalizer": {"kind": if src.norm.is_identity() { "identity" } else { "folded" },
-                           "note": "rall trains without an observation normaliser: the network takes the scaled observation below as is. (A normaliser, if one is added, is folded into the first layer of the ONNX graph.)"},
+            "normalizer": net.normalizer_json(),
         },
         "network": net.describe(),
         "observation": observation_json(&config.env)?,
@@ -882,46 +895,40 @@ mod tests {
     }
 
     #[test]
-    fn folding_a_normaliser_equals_normalising_first() {
-        let layers = vec![layer(4, 5, 1), layer(5, 3, 2)];
+    fn the_normaliser_is_the_graphs_first_two_nodes() {
         let norm = ObsNormalizer {
             mean: vec![0.5, -1.0, 2.0, 0.0],
-            std: vec![2.0, 0.5, 1.0, 4.0],
+            inv_std: vec![0.5, 2.0, 1.0, 0.25],
         };
+        let layers = vec![layer(4, 5, 1), layer(5, 3, 2)];
         let x = [0.3f32, -0.7, 1.9, 5.0];
         let normalised: Vec<f32> = x
             .iter()
-            .zip(norm.mean.iter().zip(&norm.std))
-            .map(|(v, (m, s))| (v - m) / s)
+            .zip(norm.mean.iter().zip(&norm.inv_std))
+            .map(|(v, (m, s))| (v - m) * s)
             .collect();
         let plain = PolicyNet::GaussianMean {
+            norm: None,
             layers: layers.clone(),
         };
-        let mut folded_layers = layers;
-        norm.fold_into(&mut folded_layers[0]).unwrap();
-        let folded = PolicyNet::GaussianMean {
-            layers: folded_layers,
+        let with_norm = PolicyNet::GaussianMean {
+            norm: Some(norm),
+            layers,
         };
-        let a = plain.forward_f64(&normalised);
-        let b = folded.forward_f64(&x);
-        for (a, b) in a.iter().zip(&b) {
-            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
-        }
-        assert!(!norm.is_identity());
-        assert!(ObsNormalizer::identity(3).is_identity());
-    }
-
-    #[test]
-    fn a_bad_normaliser_is_refused() {
-        let mut l = layer(2, 2, 3);
-        let bad = ObsNormalizer {
-            mean: vec![0.0; 2],
-            std: vec![1.0, 0.0],
-        };
-        let err = bad.fold_into(&mut l).unwrap_err().to_string();
-        assert!(err.contains("std[1]"), "{err}");
-        let short = ObsNormalizer::identity(3);
-        assert!(short.fold_into(&mut l).is_err());
+        assert_eq!(
+            plain.forward_f64(&normalised),
+            with_norm.forward_f64(&x),
+            "the reference pass normalises first"
+        );
+        let ops: Vec<String> = with_norm
+            .graph()
+            .node
+            .into_iter()
+            .map(|n| n.op_type)
+            .collect();
+        assert_eq!(ops, ["Sub", "Mul", "Gemm", "Elu", "Gemm"]);
+        let ops: Vec<String> = plain.graph().node.into_iter().map(|n| n.op_type).collect();
+        assert_eq!(ops, ["Gemm", "Elu", "Gemm"]);
     }
 
     #[test]

@@ -1,7 +1,7 @@
 //! Writing ONNX without a new dependency: the subset of the ONNX protobuf schema
 //! that an MLP policy needs, hand-declared as `prost` messages (field numbers from
 //! the official `onnx/onnx.proto`, IR version 7 = opset 13), and a graph builder
-//! for dense ELU networks (`Gemm` + `Elu`).
+//! for dense ELU networks (`Gemm` + `Elu`, after an optional normaliser `Sub` + `Mul`).
 //!
 //! onnx.proto is proto2; prost writes proto3-style fields, i.e. omits fields equal
 //! to their default. Every field we rely on has the same default in both (0, "",
@@ -286,6 +286,32 @@ pub fn push_mlp(graph: &mut GraphProto, prefix: &str, layers: &[Dense], input: &
         x = h;
     }
 }
+
+/// Appends the observation normaliser `output = (input - mean) * inv_std` to
+/// `graph` (`Sub`, then `Mul`; initializers `obs_norm.mean`, `obs_norm.inv_std`).
+pub fn push_normalizer(
+    graph: &mut GraphProto,
+    mean: &[f32],
+    inv_std: &[f32],
+    input: &str,
+    output: &str,
+) {
+    let (m, s, centred) = (NORM_MEAN, NORM_INV_STD, "obs_norm.centred");
+    graph.initializer.push(float_tensor(m, &[mean.len()], mean));
+    graph
+        .initializer
+        .push(float_tensor(s, &[inv_std.len()], inv_std));
+    graph
+        .node
+        .push(node("Sub", "obs_norm.sub", &[input, m], centred));
+    graph
+        .node
+        .push(node("Mul", "obs_norm.mul", &[centred, s], output));
+}
+
+/// Initializer names of the normaliser [`push_normalizer`] writes.
+pub const NORM_MEAN: &str = "obs_norm.mean";
+pub const NORM_INV_STD: &str = "obs_norm.inv_std";
 
 /// Appends `output = Concat(inputs, axis)` to `graph`.
 pub fn push_concat(graph: &mut GraphProto, name: &str, inputs: &[&str], axis: i64, output: &str) {

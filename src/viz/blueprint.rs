@@ -3,10 +3,13 @@
 //! (`rerun file.rrd viz/rall-play.rbl`).
 //!
 //! The 3D view's eye follows the robot: an `EyeControls3D` view property tracking
-//! `world/robot/trunk/follow` from a few metres behind it. rerun 0.36's Rust blueprint
-//! builder cannot set view properties, so [`Layout::send`] adds that property to
-//! the builder's blueprint messages before sending them (one blueprint, one
-//! activation, exactly as the builder would).
+//! `world/robot/trunk/follow` from about a metre behind it. The plots have no
+//! legends (`PlotLegend` hidden): a legend inside a small plot covers its lines, so
+//! the view titles say what is drawn, the velocity lines have the colours of the
+//! 3D arrows, and hovering a line names it. rerun 0.36's Rust blueprint builder
+//! cannot set view properties, so [`Layout::send`] adds them to the builder's
+//! blueprint messages before sending them (one blueprint, one activation, exactly
+//! as the builder would).
 
 use anyhow::{Context, Result};
 use rerun::blueprint::components::Eye3DKind;
@@ -15,7 +18,7 @@ use rerun::blueprint::{
     BarChartView, Blueprint, BlueprintActivation, BlueprintPanel, ContainerLike, Horizontal,
     SelectionPanel, Spatial3DView, Tabs, TextLogView, TimePanel, TimeSeriesView, Vertical,
 };
-use rerun::external::re_sdk_types::blueprint::archetypes::EyeControls3D;
+use rerun::external::re_sdk_types::blueprint::archetypes::{EyeControls3D, PlotLegend};
 use rerun::log::LogMsg;
 use rerun::{RecordingStream, RecordingStreamBuilder};
 
@@ -24,8 +27,34 @@ pub const PLAY_APP_ID: &str = "rall-play";
 /// Application id of `rall train --rerun-*` recordings.
 pub const TRAIN_APP_ID: &str = "rall-train";
 
-fn series(name: &str, origin: &str) -> ContainerLike {
+/// A view property the builder cannot set, logged at `{view}/{name}`.
+enum ViewProperty {
+    Eye(Box<EyeControls3D>),
+    Legend(PlotLegend),
+}
+
+/// View properties by blueprint path of their view.
+type Properties = Vec<(String, ViewProperty)>;
+
+/// A time series view of `origin` without a legend.
+fn series(name: &str, origin: &str, props: &mut Properties) -> ContainerLike {
+    let view: ContainerLike = TimeSeriesView::new(name).with_origin(origin).into();
+    hide_legend(&view, props);
+    view
+}
+
+/// A training metric's view: a legend names its terms (reward terms, losses).
+fn training_series(name: &str, origin: &str) -> ContainerLike {
     TimeSeriesView::new(name).with_origin(origin).into()
+}
+
+fn hide_legend(view: &ContainerLike, props: &mut Properties) {
+    if let ContainerLike::View(v) = view {
+        props.push((
+            v.blueprint_path().to_string(),
+            ViewProperty::Legend(PlotLegend::update_fields().with_visible(false)),
+        ));
+    }
 }
 
 /// The entity the 3D view's eye follows: invisible points around the trunk
@@ -36,10 +65,10 @@ pub const FOLLOWED_ENTITY: &str = "world/robot/trunk/follow";
 const EYE_POSITION_M: [f32; 3] = [-0.8, -0.8, 0.6];
 const EYE_TARGET_M: [f32; 3] = [0.0, 0.0, 0.3];
 
-/// A viewer layout: the blueprint and the eye of each 3D view (by blueprint path).
+/// A viewer layout: the blueprint and its views' properties (3D eyes, legends).
 pub struct Layout {
     blueprint: Blueprint,
-    eyes: Vec<(String, EyeControls3D)>,
+    props: Properties,
 }
 
 impl Layout {
@@ -49,7 +78,7 @@ impl Layout {
     pub fn opened_at_end(mut self) -> Self {
         self.blueprint = self
             .blueprint
-            .with_time_panel(TimePanel::new().with_play_state(PlayState::Following));
+            .with_time_panel(collapsed_time_panel().with_play_state(PlayState::Following));
         self
     }
 
@@ -88,20 +117,24 @@ impl Layout {
             .into_iter()
             .filter(|m| m.store_id() == &id && !matches!(m, LogMsg::BlueprintActivationCommand(_)))
             .collect();
-        // The eyes, logged into that same blueprint store.
-        let (eye, eye_storage) = RecordingStreamBuilder::new(app)
+        // The view properties, logged into that same blueprint store.
+        let (prop, prop_storage) = RecordingStreamBuilder::new(app)
             .recording_id(id.recording_id().clone())
             .blueprint()
             .memory()
             .context("blueprint memory stream")?;
-        eye.set_time_sequence("blueprint", 0);
-        for (view, controls) in &self.eyes {
-            eye.log(format!("{view}/EyeControls3D"), controls)
-                .context("logging the 3D eye")?;
+        prop.set_time_sequence("blueprint", 0);
+        for (view, p) in &self.props {
+            match p {
+                ViewProperty::Eye(eye) => prop.log(format!("{view}/EyeControls3D"), &**eye),
+                ViewProperty::Legend(legend) => prop.log(format!("{view}/PlotLegend"), legend),
+            }
+            .context("logging a view property")?;
         }
-        eye.flush_blocking().context("flushing the 3D eye")?;
+        prop.flush_blocking()
+            .context("flushing the view properties")?;
         out.extend(
-            eye_storage
+            prop_storage
                 .take()
                 .into_iter()
                 .filter(|m| matches!(m, LogMsg::ArrowMsg(..)) && m.store_id() == &id),
@@ -112,53 +145,87 @@ impl Layout {
 }
 
 /// A 3D view of `world` whose eye frames and follows the robot.
-fn robot_view(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
-    let view: ContainerLike = Spatial3DView::new("robot").with_origin("world").into();
+fn robot_view(props: &mut Properties) -> ContainerLike {
+    let view: ContainerLike =
+        Spatial3DView::new("robot; arrows: command green, measured velocity blue, push red")
+            .with_origin("world")
+            .into();
     if let ContainerLike::View(v) = &view {
-        eyes.push((
+        props.push((
             v.blueprint_path().to_string(),
-            EyeControls3D::new()
-                .with_kind(Eye3DKind::Orbital)
-                .with_position(EYE_POSITION_M)
-                .with_look_target(EYE_TARGET_M)
-                .with_tracking_entity(FOLLOWED_ENTITY),
+            ViewProperty::Eye(Box::new(
+                EyeControls3D::new()
+                    .with_kind(Eye3DKind::Orbital)
+                    .with_position(EYE_POSITION_M)
+                    .with_look_target(EYE_TARGET_M)
+                    .with_tracking_entity(FOLLOWED_ENTITY),
+            )),
         ));
     }
     view
 }
 
+/// `"{title} (0 a, 1 b, ...)"`: series named by the level they are drawn at.
+fn levels_title(title: &str, names: impl IntoIterator<Item = impl AsRef<str>>) -> String {
+    let levels: Vec<String> = names
+        .into_iter()
+        .enumerate()
+        .map(|(k, n)| format!("{k} {}", n.as_ref()))
+        .collect();
+    format!("{title} ({})", levels.join(", "))
+}
+
+/// A risk term's name, short enough for a tab title (`joint_velocity` is `vel`).
+fn short_term_name(name: &str) -> &str {
+    match name.rsplit('_').next().unwrap_or(name) {
+        "velocity" => "vel",
+        "acceleration" => "acc",
+        last => last,
+    }
+}
+
 /// The episode panels: 3D robot and terrain, events, the quantile bar chart, mean and
-/// CVaR, IQR, velocities (command vs measured), torques, contacts.
-fn episode_layout(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
+/// CVaR, IQR, velocities (command vs measured), torques, contacts, risk crossings.
+fn episode_layout(props: &mut Properties) -> ContainerLike {
     let left = Vertical::new([
-        robot_view(eyes),
+        robot_view(props),
         TextLogView::new("events").with_origin("events").into(),
     ])
     .with_row_shares([3.0, 1.0]);
     let velocity = Horizontal::new([
-        series("vx (m/s): command, measured", "plots/velocity/vx"),
-        series("vy (m/s): command, measured", "plots/velocity/vy"),
-        series(
-            "yaw rate (rad/s): command, measured",
-            "plots/velocity/yaw_rate",
-        ),
+        series("vx (m/s)", "plots/velocity/vx", props),
+        series("vy (m/s)", "plots/velocity/vy", props),
+        series("yaw rate (rad/s)", "plots/velocity/yaw_rate", props),
     ]);
-    let right = Vertical::new([
-        BarChartView::new("value distribution Z_tau(s)")
+    let quantiles: ContainerLike =
+        BarChartView::new("Z_tau(s) minus its mean (y) at quantile tau (x, 0 to 1)")
             .with_origin("value/quantiles")
-            .into(),
+            .into();
+    hide_legend(&quantiles, props);
+    let right = Vertical::new([
+        quantiles,
         Horizontal::new([
-            series("value: mean and CVaR", "value/stats"),
-            series("IQR", "value/iqr"),
+            series("value: mean (white), CVaR (orange)", "value/stats", props),
+            series("IQR = Z_0.75 - Z_0.25", "value/iqr", props),
         ])
         .into(),
         velocity.into(),
         Tabs::new([
-            series("joint torques (N m)", "plots/torques"),
-            series("foot contacts", "plots/contacts"),
+            series("torques (N m)", "plots/torques", props),
             series(
-                "risk thresholds crossed (term k at k + 0.8)",
+                &levels_title("contacts", crate::robot::LEGS),
+                "plots/contacts",
+                props,
+            ),
+            series(
+                &levels_title(
+                    "risk crossed",
+                    crate::env::risk::RISK_TERMS
+                        .iter()
+                        .map(|t| short_term_name(t.name)),
+                ),
                 "plots/risk_crossed",
+                props,
             ),
         ])
         .into(),
@@ -168,48 +235,54 @@ fn episode_layout(eyes: &mut Vec<(String, EyeControls3D)>) -> ContainerLike {
         .into()
 }
 
-/// `root` with rerun's blueprint and selection panels collapsed, so the views get
-/// the whole window (the panels open from the viewer's top bar).
+fn collapsed_time_panel() -> TimePanel {
+    TimePanel::new().with_state(PanelState::Collapsed)
+}
+
+/// `root` with rerun's blueprint, selection and time panels collapsed, so the views
+/// get the whole window (the panels open from the viewer's top bar; the collapsed
+/// time panel keeps its play controls and time slider).
 fn collapsed_panels(root: impl Into<ContainerLike>) -> Blueprint {
     Blueprint::new(root)
         .with_auto_views(false)
         .with_blueprint_panel(BlueprintPanel::new().with_state(PanelState::Collapsed))
         .with_selection_panel(SelectionPanel::new().with_state(PanelState::Collapsed))
+        .with_time_panel(collapsed_time_panel())
 }
 
 /// Layout of `rall play` recordings.
 pub fn play_blueprint() -> Layout {
-    let mut eyes = Vec::new();
-    let blueprint = collapsed_panels(episode_layout(&mut eyes));
-    Layout { blueprint, eyes }
+    let mut props = Vec::new();
+    let blueprint = collapsed_panels(episode_layout(&mut props));
+    Layout { blueprint, props }
 }
 
 /// Layout of training recordings: the metrics, and the evaluation episodes.
 pub fn train_blueprint() -> Layout {
-    let mut eyes = Vec::new();
+    let mut props = Vec::new();
     let metrics = Vertical::new([
         Horizontal::new([
-            series("reward terms (per episode)", "train/reward_terms"),
-            series("episode return", "train/episode/return"),
-            series("episode length (steps)", "train/episode/length"),
+            training_series("reward terms (per episode)", "train/reward_terms"),
+            training_series("episode return", "train/episode/return"),
+            training_series("episode length (steps)", "train/episode/length"),
         ])
         .into(),
         Horizontal::new([
-            series("terrain level", "train/terrain_level"),
-            series("falls (fraction)", "train/episode/fall_fraction"),
-            series("risk penalties fired", "train/risk_fired"),
+            training_series("terrain level", "train/terrain_level"),
+            training_series("falls (fraction)", "train/episode/fall_fraction"),
+            training_series("risk penalties fired", "train/risk_fired"),
         ])
         .into(),
         Horizontal::new([
-            series("losses", "train/loss"),
-            series("learning rate", "train/learning_rate"),
-            series("action std", "train/std"),
-            series("env steps/s", "train/steps_per_s"),
+            training_series("losses", "train/loss"),
+            training_series("learning rate", "train/learning_rate"),
+            training_series("action std", "train/std"),
+            training_series("env steps/s", "train/steps_per_s"),
         ])
         .into(),
     ])
     .with_name("training");
-    let eval = Vertical::new([episode_layout(&mut eyes)]).with_name("evaluation episodes");
+    let eval = Vertical::new([episode_layout(&mut props)]).with_name("evaluation episodes");
     let blueprint = collapsed_panels(Tabs::new([metrics.into(), eval.into()]));
-    Layout { blueprint, eyes }
+    Layout { blueprint, props }
 }

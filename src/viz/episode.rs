@@ -15,7 +15,7 @@
 //! | `plots/torques` | 12 joint torques (N m) | every step |
 //! | `plots/contacts` | foot contact, leg `i` drawn at `i + 0.8 * contact` | every step |
 //! | `plots/risk_crossed` | risk thresholds crossed, term `k` drawn at `k + 0.8 * crossed` | every step |
-//! | `value/quantiles` | `BarChart` of `Z_tau(s)` on a midpoint tau grid, bars `1/n` wide over [0, 1] (IQN only) | every [`VALUE_EVERY_FRAMES`] frames |
+//! | `value/quantiles` | `BarChart` of `Z_tau(s)` minus its mean on a midpoint tau grid, bars `1/n` wide over [0, 1] (IQN only) | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `value/stats` | scalars `[mean, CVaR_eta]` (scalar critic: `[V, V]`) | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `value/iqr` | `Z_0.75(s) - Z_0.25(s)` | every [`VALUE_EVERY_FRAMES`] frames |
 //! | `events` | `TextLog`: episodes, fired risk penalties, pushes, falls, command changes | on events |
@@ -191,9 +191,9 @@ fn log_mesh(rec: &RecordingStream, path: &str, m: &TriMesh) -> Result<()> {
 
 /// Half extents (m, trunk frame) of the box the 3D view's eye frames: rerun's
 /// tracking eye orbits at 1.5x the tracked entity's bounding-sphere radius, so this
-/// box puts the eye about 1.2 m from the trunk: the robot about a third of the view's
-/// height (at 2.4 m it was a sixth).
-const FOLLOW_FRAME_HALF_M: [f32; 3] = [0.6, 0.45, 0.25];
+/// box puts the eye about 0.85 m from the trunk: the robot about a third of the
+/// view's height (at 1.2 m it was a quarter, at 2.4 m a sixth).
+const FOLLOW_FRAME_HALF_M: [f32; 3] = [0.42, 0.32, 0.18];
 
 /// The entity the eye tracks ([`super::blueprint::FOLLOWED_ENTITY`]): the corners of
 /// [`FOLLOW_FRAME_HALF_M`] as zero-radius points in the trunk frame, invisible but
@@ -318,14 +318,28 @@ fn log_robot_geoms(rec: &RecordingStream, robot: &Robot) -> Result<Vec<(usize, S
     Ok(bodies)
 }
 
+/// Colour of the velocity command, as an arrow and as a line.
+const COMMAND_RGB: [u8; 3] = [40, 200, 60];
+/// Colour of the measured velocity, as an arrow and as a line.
+const MEASURED_RGB: [u8; 3] = [60, 120, 240];
+
+fn colour([r, g, b]: [u8; 3]) -> rerun::Color {
+    rerun::Color::from_rgb(r, g, b)
+}
+
 /// The static styles of the plots: series names, arrow colours, the quantile bars' taus.
 fn log_plot_styles(rec: &RecordingStream, robot: &Robot, probe: &ValueProbe) -> Result<()> {
     let series =
         |names: &[&str]| rerun::SeriesLines::new().with_names(names.iter().map(|s| s.to_string()));
+    // the plots have no legends: the velocity lines take the 3D arrows' colours,
+    // the value lines the colours their view's title names
     for axis in ["vx", "vy", "yaw_rate"] {
         rec.log_static(
             format!("plots/velocity/{axis}"),
-            &series(&["command", "measured"]),
+            &series(&["command", "measured"])
+                .with_colors([colour(COMMAND_RGB), colour(MEASURED_RGB)])
+                // the command, drawn first, stays visible under the measured line
+                .with_widths([3.0, 1.0]),
         )?;
     }
     let joints: Vec<&str> = robot
@@ -341,16 +355,22 @@ fn log_plot_styles(rec: &RecordingStream, robot: &Robot, probe: &ValueProbe) -> 
         .map(|t| t.name)
         .collect();
     rec.log_static("plots/risk_crossed", &series(&terms))?;
-    rec.log_static("value/stats", &series(&["mean", probe.label()]))?;
-    rec.log_static("value/iqr", &series(&["IQR"]))?;
+    rec.log_static(
+        "value/stats",
+        &series(&["mean", probe.label()]).with_colors([
+            rerun::Color::from_rgb(230, 230, 230),
+            rerun::Color::from_rgb(255, 150, 30),
+        ]),
+    )?;
+    rec.log_static(
+        "value/iqr",
+        &series(&["IQR"]).with_colors([rerun::Color::from_rgb(230, 200, 60)]),
+    )?;
     // Per-step data carries only what changes: the colours of the velocity
     // arrows and the taus of the bar chart are static.
     rec.log_static(
         "world/velocity",
-        &rerun::Arrows3D::update_fields().with_colors([
-            rerun::Color::from_rgb(40, 200, 60),
-            rerun::Color::from_rgb(60, 120, 240),
-        ]),
+        &rerun::Arrows3D::update_fields().with_colors([colour(COMMAND_RGB), colour(MEASURED_RGB)]),
     )?;
     if !probe.taus().is_empty() {
         rec.log_static(
@@ -851,13 +871,19 @@ fn send_batch(
                 .with_many_values(
                     readings
                         .into_iter()
-                        .map(|r| rerun::datatypes::TensorData::from(r.quantiles)),
+                        .map(|r| rerun::datatypes::TensorData::from(centred(&r.quantiles, r.mean))),
                 )
                 .columns_of_unit_batches()?
                 .collect(),
         )?;
     }
     Ok(())
+}
+
+/// `Z_tau(s) - mean`: rerun's bar chart always starts its bars at 0, so bars of
+/// `Z_tau(s)` itself would show the value's level, not the distribution's shape.
+pub fn centred(quantiles: &[f32], mean: f32) -> Vec<f32> {
+    quantiles.iter().map(|q| q - mean).collect()
 }
 
 /// Width of each bar of the quantile chart: the spacing of its tau grid (`1 / n`
