@@ -21,7 +21,7 @@ use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod common;
-use common::tiny_config;
+use common::{metrics_without_timing, tiny_config};
 
 /// `V(s)` regressed on the GAE returns by the Huber loss with threshold `delta`
 /// (the config's `kappa`).
@@ -210,22 +210,6 @@ fn the_huber_critic_computes_its_loss_and_gradient() {
         "the gradient is not all zero"
     );
     eprintln!("worst relative gradient error {worst:.2e}");
-}
-
-/// Non-timing columns of `metrics.csv`.
-fn metrics_without_timing(run: &Path) -> Vec<Vec<String>> {
-    let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
-    let mut lines = text.lines();
-    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let keep: Vec<usize> = (0..head.len())
-        .filter(|&i| !head[i].ends_with("_s") && head[i] != "env_steps_per_s")
-        .collect();
-    lines
-        .map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            keep.iter().map(|&i| f[i].to_string()).collect()
-        })
-        .collect()
 }
 
 /// Every tensor of the run's latest checkpoint, as bits.

@@ -8,6 +8,7 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
+use rall::experiment::results::ExperimentResults;
 use rall::experiment::{
     run_experiment, run_state, ship_all, train_all, ExperimentOptions, ExperimentSpec,
 };
@@ -177,6 +178,27 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
             "{f} differs between two evaluations of the same checkpoints"
         );
     }
+    // the figures drawn again from results.json alone are the same files
+    let figures = dir.path().join("results-a/figures");
+    let read_all = || {
+        let mut files: Vec<(std::path::PathBuf, Vec<u8>)> = std::fs::read_dir(&figures)
+            .unwrap()
+            .map(|e| {
+                let p = e.unwrap().path();
+                let bytes = std::fs::read(&p).unwrap();
+                (p, bytes)
+            })
+            .collect();
+        files.sort();
+        files
+    };
+    let drawn_by_the_evaluation = read_all();
+    let redrawn = ExperimentResults::redraw_figures(&dir.path().join("results-a")).unwrap();
+    assert_eq!(redrawn.len(), drawn_by_the_evaluation.len());
+    assert!(
+        read_all() == drawn_by_the_evaluation,
+        "figures redrawn from results.json differ from the evaluation's"
+    );
     let md = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
     assert!(
         md.contains("Table I") && md.contains("(paper 0.539)"),
@@ -741,4 +763,42 @@ fn experiment_run_filter_refuses_an_unknown_label_naming_the_known_ones() {
         .output()
         .unwrap();
     assert!(!out.status.success());
+}
+
+#[test]
+fn a_run_with_its_own_shipped_folder_ships_there_and_is_reused_from_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let elsewhere = dir.path().join("other-experiment/rall-s1");
+    let text = one_run_spec(dir.path()).replace(
+        "iterations = 2\n",
+        &format!("iterations = 2\nshipped = \"{}\"\n", elsewhere.display()),
+    );
+    let file = dir.path().join("pilot.toml");
+    std::fs::write(&file, text).unwrap();
+    let spec = ExperimentSpec::from_file(&file).unwrap();
+    train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
+    ship_all(&spec, &file).unwrap();
+    assert!(
+        !dir.path().join("shipped").exists(),
+        "nothing in shipped_dir"
+    );
+    assert!(elsewhere.join("latest.safetensors").exists());
+    let ckpt = elsewhere.join("checkpoints/model_000002.safetensors");
+    assert!(ckpt.exists());
+    // another experiment reusing it reads it from there, finished, without training
+    std::fs::remove_dir_all(dir.path().join("runs")).unwrap();
+    let state = run_state(&spec, &spec.runs[0]).unwrap();
+    assert!(state.done(), "{:?}", state.progress);
+    // the shipped headline checkpoints are actor-only: they act, and refuse to stand
+    // in for a critic (the meta controller's IQR, `rall eval falls`)
+    let p = rall::eval::NamedPolicy::load("copy", &ckpt).unwrap();
+    assert!(p.actor_only);
+    let e = match p.critic() {
+        Ok(_) => panic!("an actor-only copy gave a critic"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(e.contains("actor-only") && e.contains("copy"), "{e}");
+    let full =
+        rall::eval::NamedPolicy::load("full", &elsewhere.join("latest.safetensors")).unwrap();
+    assert!(full.critic().is_ok(), "a full checkpoint has its critic");
 }

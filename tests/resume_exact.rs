@@ -13,7 +13,7 @@ use rall::learn::read_checkpoint;
 use rall::runner::{train, IterationObserver, LATEST};
 
 mod common;
-use common::tiny_method;
+use common::{metrics_without_timing, tiny_method};
 
 fn no_stop() -> Arc<AtomicBool> {
     Arc::new(AtomicBool::new(false))
@@ -29,22 +29,6 @@ fn config(method: &str, iterations: usize) -> TrainConfig {
         a.iterations = 3;
     }
     c
-}
-
-/// Metrics rows without the timing columns (names ending in `_s`, and the rate).
-fn metrics_without_timing(run: &Path) -> Vec<Vec<String>> {
-    let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
-    let mut lines = text.lines();
-    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let keep: Vec<usize> = (0..head.len())
-        .filter(|&i| !head[i].ends_with("_s") && head[i] != "env_steps_per_s")
-        .collect();
-    lines
-        .map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            keep.iter().map(|&i| f[i].to_string()).collect()
-        })
-        .collect()
 }
 
 /// Named tensors as bit patterns, and named state blobs.

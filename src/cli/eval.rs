@@ -272,6 +272,11 @@ fn falls(a: &FallsArgs) -> Result<()> {
     println!("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|");
     for path in &a.checkpoint {
         let p = load_policy(path)?;
+        anyhow::ensure!(
+            !p.actor_only,
+            "{} is an actor-only copy: `rall eval falls` reads the critic, which it does not hold; give the full checkpoint",
+            path.display()
+        );
         let r = crate::eval::critic_before_falls(
             &p.learner,
             &p.config,

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
+use crate::experiment::results::ExperimentResults;
 use crate::experiment::{run_experiment, run_state, ship_all, ExperimentOptions, ExperimentSpec};
 
 #[derive(Debug, Args)]
@@ -29,6 +30,10 @@ pub struct ExperimentArgs {
     /// `shipped_dir` (to commit them) and exit.
     #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only"])]
     pub ship: bool,
+    /// Draw the figures of the file's results_dir again from its results.json with
+    /// the current figure code (nothing is evaluated) and exit.
+    #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only", "ship"])]
+    pub redraw: bool,
     /// With --train-only: train only the run with this label (repeat it), so that
     /// several runs of one experiment train side by side, one process each.
     #[arg(long = "run", value_name = "LABEL", requires = "train_only")]
@@ -65,6 +70,12 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     }
     if args.ship {
         return ship_all(&spec, &args.file);
+    }
+    if args.redraw {
+        for f in ExperimentResults::redraw_figures(&spec.results_dir)? {
+            println!("{}", f.display());
+        }
+        return Ok(());
     }
     if args.status {
         let width = spec.runs.iter().map(|r| r.label.len()).max().unwrap_or(0);

@@ -96,6 +96,12 @@ pub fn run(args: &PlayArgs) -> Result<()> {
     let target = RerunTarget::from_flags(args.save.as_deref(), args.spawn, args.connect.as_deref())
         .context("choose --save FILE, --spawn or --connect [ADDR]")?;
     let loaded = load_policy(checkpoint)?;
+    if loaded.actor_only {
+        eprintln!(
+            "note: {} is an actor-only copy: the robot acts as trained, but the value distribution, mean, CVaR and IQR shown come from an untrained critic",
+            checkpoint.display()
+        );
+    }
     let env_cfg = match &args.config {
         Some(path) => env_config_from_file(path)?,
         None => loaded.config.env.clone(),

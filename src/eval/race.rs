@@ -12,7 +12,7 @@
 //! Every robot starts an episode on RISKY.
 
 use anyhow::{bail, Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::policy::Actor;
 use super::report::{csv_line, markdown_table};
@@ -216,7 +216,7 @@ pub struct MetaLog {
 }
 
 /// Robot-steps whose trunk x fell in [x0, x0 + 0.5).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct IqrBin {
     pub x0_m: f64,
     pub steps: u64,

@@ -19,6 +19,9 @@ pub struct NamedPolicy {
     pub policy: Policy,
     pub env: EnvConfig,
     pub path: Option<PathBuf>,
+    /// Loaded from an actor-only copy (`rall checkpoint actor-only`): it acts, but
+    /// its critic was never trained, so [`NamedPolicy::critic`] refuses it.
+    pub actor_only: bool,
 }
 
 impl NamedPolicy {
@@ -38,6 +41,7 @@ impl NamedPolicy {
                 env: p.env.clone(),
                 policy: Policy::Onnx(Box::new(p)),
                 path: Some(path.to_path_buf()),
+                actor_only: true,
             });
         }
         let p = load_policy(path).with_context(|| format!("policy {name}"))?;
@@ -46,17 +50,26 @@ impl NamedPolicy {
             policy: Policy::Checkpoint(Box::new(p.learner)),
             env: p.config.env,
             path: Some(path.to_path_buf()),
+            actor_only: p.actor_only,
         })
     }
 
-    /// The checkpoint's learner (critic, Gaussian); an ONNX policy has none.
+    /// The checkpoint's learner (critic, Gaussian); an ONNX policy has none, and
+    /// an actor-only copy's critic was never trained.
     pub fn critic(&self) -> Result<&Learner> {
-        self.policy.learner().with_context(|| {
+        let learner = self.policy.learner().with_context(|| {
             format!(
                 "policy {} is an ONNX network: it has no critic (only a rall checkpoint has one)",
                 self.name
             )
-        })
+        })?;
+        anyhow::ensure!(
+            !self.actor_only,
+            "policy {} is an actor-only copy ({}): it acts, but it holds no trained critic; give the full checkpoint it was cut from",
+            self.name,
+            self.path.as_ref().map_or(String::new(), |p| p.display().to_string())
+        );
+        Ok(learner)
     }
 
     /// `NAME=PATH` -> (name, path).

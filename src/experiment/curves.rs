@@ -5,7 +5,7 @@
 //! - `platform`: success rate pooled over the rung's heights;
 //! - `race`: the returns' 0.25 quantile (the worst case the paper's figure reads).
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::stats::{bootstrap_strata, cell_seed, mean, quantile, Estimate};
 use crate::eval::{PlatformReport, RaceReport, TtfReport};
@@ -20,6 +20,60 @@ pub struct CurvePoint {
     pub estimate: Estimate,
     /// Robots (or race episodes) behind the point.
     pub units: usize,
+}
+
+/// The benchmark and metric names a results file may hold, as the `&'static str`
+/// the code compares them with.
+const NAMES: [&str; 6] = [
+    "ttf",
+    "strict_ttf",
+    "platform",
+    "success_pct",
+    "race",
+    "return_q25",
+];
+
+/// One of [`NAMES`] (read from a results file written by rall); anything else is refused.
+pub fn static_name(name: &str) -> Result<&'static str, String> {
+    NAMES.into_iter().find(|n| *n == name).ok_or_else(|| {
+        format!(
+            "unknown benchmark or metric {name:?} (known: {})",
+            NAMES.join(", ")
+        )
+    })
+}
+
+/// [`CurvePoint`] as a results file holds it.
+#[derive(Deserialize)]
+struct CurvePointFile {
+    benchmark: String,
+    metric: String,
+    policy: String,
+    severity: usize,
+    estimate: Estimate,
+    units: usize,
+}
+
+impl<'de> Deserialize<'de> for CurvePoint {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CurvePoint, D::Error> {
+        CurvePointFile::deserialize(d)?
+            .try_into()
+            .map_err(serde::de::Error::custom)
+    }
+}
+
+impl TryFrom<CurvePointFile> for CurvePoint {
+    type Error = String;
+    fn try_from(f: CurvePointFile) -> Result<CurvePoint, String> {
+        Ok(CurvePoint {
+            benchmark: static_name(&f.benchmark)?,
+            metric: static_name(&f.metric)?,
+            policy: f.policy,
+            severity: f.severity,
+            estimate: f.estimate,
+            units: f.units,
+        })
+    }
 }
 
 /// Bootstrap settings.

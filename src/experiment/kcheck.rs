@@ -10,7 +10,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::spec::{CheckpointsSpec, ExperimentSpec, RunSpec};
 use super::stats::mean;
@@ -49,11 +49,8 @@ pub fn checkpoint_path(spec: &ExperimentSpec, r: &RunSpec, it: usize) -> Result<
     if local.exists() {
         return Ok(local);
     }
-    if let Some(shipped) = &spec.shipped_dir {
-        let p = shipped
-            .join(spec.run_dir_name(r))
-            .join("checkpoints")
-            .join(&name);
+    if let Some(copy) = spec.shipped_copy(r) {
+        let p = copy.join("checkpoints").join(&name);
         if p.exists() {
             return Ok(p);
         }
@@ -113,6 +110,35 @@ pub struct CheckpointSpread {
     /// Newest first, as `values`.
     pub iterations: Vec<usize>,
     pub values: Vec<f64>,
+}
+
+/// [`CheckpointSpread`] as a results file holds it.
+#[derive(Deserialize)]
+struct CheckpointSpreadFile {
+    benchmark: String,
+    run: String,
+    iterations: Vec<usize>,
+    values: Vec<f64>,
+}
+
+impl<'de> Deserialize<'de> for CheckpointSpread {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CheckpointSpread, D::Error> {
+        CheckpointSpreadFile::deserialize(d)?
+            .try_into()
+            .map_err(serde::de::Error::custom)
+    }
+}
+
+impl TryFrom<CheckpointSpreadFile> for CheckpointSpread {
+    type Error = String;
+    fn try_from(f: CheckpointSpreadFile) -> Result<CheckpointSpread, String> {
+        Ok(CheckpointSpread {
+            benchmark: super::curves::static_name(&f.benchmark)?,
+            run: f.run,
+            iterations: f.iterations,
+            values: f.values,
+        })
+    }
 }
 
 impl CheckpointSpread {

@@ -29,6 +29,7 @@ use crate::eval::{
     evaluate_race, evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind,
     Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
 };
+use crate::runner::policy_file::save_actor_only;
 use crate::runner::{install_teacher, train, PhaseOneOnly, Progress, RunDir, TrainSummary, LATEST};
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use spec::ExperimentSpec;
@@ -214,10 +215,9 @@ fn ship_files(run: &Path, dst: &Path) -> Result<()> {
 /// A run absent from `runs_dir` starts from its shipped checkpoint, if any.
 /// Returns whether it was restored.
 pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool> {
-    let Some(ship) = &spec.shipped_dir else {
+    let Some(src) = spec.shipped_copy(r) else {
         return Ok(false);
     };
-    let src = ship.join(spec.run_dir_name(r));
     let dst = spec.run_dir(r);
     if has_checkpoints(&RunDir { root: dst.clone() }) || !src.join(LATEST).exists() {
         return Ok(false);
@@ -234,10 +234,6 @@ pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool>
 /// Copies every run's newest readable checkpoint (as `latest.safetensors`) with
 /// its config and metrics into `shipped_dir`, with a README saying how it was made.
 pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
-    let ship = spec
-        .shipped_dir
-        .as_ref()
-        .context("the experiment file sets no shipped_dir")?;
     for r in &spec.runs {
         let rd = RunDir {
             root: spec.run_dir(r),
@@ -246,7 +242,9 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             continue;
         };
         let state = run_state(spec, r)?;
-        let dst = ship.join(spec.run_dir_name(r));
+        let dst = spec.shipped_copy(r).with_context(|| {
+            format!("run {:?}: the experiment file sets no shipped_dir", r.label)
+        })?;
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
         copy_atomic(&ckpt, &dst.join(LATEST))?;
         ship_files(&rd.root, &dst)?;
@@ -318,10 +316,7 @@ fn ship_headline_checkpoints(
         let name = format!("model_{it:06}.safetensors");
         let src = rd.root.join("checkpoints").join(&name);
         if src.exists() {
-            crate::runner::policy_file::save_actor_only(
-                &src,
-                &dst.join("checkpoints").join(&name),
-            )?;
+            save_actor_only(&src, &dst.join("checkpoints").join(&name))?;
         }
     }
     Ok(())
@@ -509,12 +504,10 @@ pub fn newest_checkpoint(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<Opt
     if has_checkpoints(&rd) {
         return Ok(Some(rd.resume_point()?.0));
     }
-    let Some(shipped) = &spec.shipped_dir else {
+    let Some(root) = spec.shipped_copy(r) else {
         return Ok(None);
     };
-    let copy = RunDir {
-        root: shipped.join(spec.run_dir_name(r)),
-    };
+    let copy = RunDir { root };
     if copy.latest().exists() {
         return Ok(Some(copy.latest()));
     }
@@ -546,7 +539,7 @@ fn choices_dir(spec: &ExperimentSpec, r: &spec::RunSpec, state: &RunState) -> Op
     }) {
         return Some(state.dir.clone());
     }
-    Some(spec.shipped_dir.as_ref()?.join(spec.run_dir_name(r)))
+    spec.shipped_copy(r)
 }
 
 /// The file of run `r`'s chosen final policy ([`selected_in`]).

@@ -6,14 +6,14 @@
 //! an interval over seeds would mean little, and the one over robots does not cover
 //! what another seed would do.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::spec::ExperimentSpec;
 use super::stats::{bootstrap_strata, cell_seed, mean, quantile, Estimate};
 use crate::eval::{PlatformReport, RaceReport, TtfReport};
 
 /// One method: the labels of its seeds' runs, in the experiment file's order.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Method {
     /// The first seed's label (the paper's method name; its numbers are looked up by it).
     pub label: String,
@@ -121,7 +121,7 @@ fn cells_by_method<'a, C>(
     out
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MethodTtfRow {
     pub method: Method,
     pub load: String,
@@ -133,7 +133,7 @@ pub struct MethodTtfRow {
     pub robots: usize,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MethodPlatformRow {
     pub method: Method,
     pub height_m: f64,
@@ -142,7 +142,7 @@ pub struct MethodPlatformRow {
     pub robots: usize,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MethodRaceRow {
     pub method: Method,
     pub q25: Estimate,
@@ -155,7 +155,7 @@ pub struct MethodRaceRow {
 }
 
 /// The three tables, one row per method.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct MethodTables {
     pub ttf: Vec<MethodTtfRow>,
     pub platform: Vec<MethodPlatformRow>,

@@ -2,10 +2,10 @@
 //! paper's number beside it, written as Markdown, CSV, JSON and figures.
 
 use std::fmt::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::curves::{curve_csv, curve_markdown, CurvePoint};
 use super::kcheck::CheckpointSpread;
@@ -21,7 +21,7 @@ use crate::eval::{
 };
 
 /// One training run: budget, what it reached, how it tracks commands.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunRow {
     pub label: String,
     pub config: String,
@@ -44,7 +44,7 @@ pub struct RunRow {
 }
 
 /// The tracking figures with bootstrap intervals over robots.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct TrackingEstimates {
     pub lin: Estimate,
     pub yaw: Estimate,
@@ -100,7 +100,7 @@ pub struct RunTracking {
     pub policy_iteration: Option<usize>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct TtfRow {
     pub method: String,
     pub load: String,
@@ -111,7 +111,7 @@ pub struct TtfRow {
     pub paper: Option<f64>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PlatformRow {
     pub method: String,
     pub height_m: f64,
@@ -120,7 +120,7 @@ pub struct PlatformRow {
     pub paper: Option<f64>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RaceRow {
     pub method: String,
     pub q25: Estimate,
@@ -131,7 +131,7 @@ pub struct RaceRow {
     pub episodes: usize,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MetaSummary {
     pub label: String,
     pub risky: String,
@@ -144,7 +144,7 @@ pub struct MetaSummary {
 }
 
 /// Everything the experiment measured.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ExperimentResults {
     pub name: String,
     pub confidence: String,
@@ -159,19 +159,19 @@ pub struct ExperimentResults {
     /// The three tables again, one row per method over its seeds.
     pub methods: MethodTables,
     /// Robustness curves (`[curves]`): a point per method, benchmark and rung.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub curves: Vec<CurvePoint>,
     /// The ladder behind the curves.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ladder: Option<Ladder>,
     /// With `[checkpoints]`: each run's number at each of its last K checkpoints.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub checkpoint_spread: Vec<CheckpointSpread>,
     /// The paper's number at rung 0 of each curve that has one: (benchmark, method, value).
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub curve_paper: Vec<(String, String, f64)>,
     /// With `[risk_signal]`: each run's risk terms over its last training iterations.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub risk_signal: Vec<super::risk_signal::RiskTermRow>,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
@@ -818,6 +818,45 @@ impl ExperimentResults {
             }
         }
         std::fs::remove_dir_all(&staging).with_context(|| format!("removing {}", staging.display()))
+    }
+
+    /// Draws the figures of the results already written in `dir` (its
+    /// `results.json`) again with the current figure code, without evaluating
+    /// anything: each figure is drawn into a staging folder, then renamed over
+    /// the old one. Nothing else in `dir` changes.
+    pub fn redraw_figures(dir: &Path) -> Result<Vec<PathBuf>> {
+        let json = dir.join("results.json");
+        let text = std::fs::read_to_string(&json).with_context(|| {
+            format!(
+                "reading {} (written by `rall experiment`; evaluate first)",
+                json.display()
+            )
+        })?;
+        let results: ExperimentResults = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a results file of this version", json.display()))?;
+        let staging = dir.join(".figures.rall-tmp");
+        if staging.exists() {
+            std::fs::remove_dir_all(&staging)
+                .with_context(|| format!("removing {}", staging.display()))?;
+        }
+        std::fs::create_dir_all(&staging)
+            .with_context(|| format!("creating {}", staging.display()))?;
+        super::plots::write_all(&results, &staging)?;
+        std::fs::create_dir_all(dir.join("figures"))?;
+        let mut drawn = Vec::new();
+        for entry in std::fs::read_dir(&staging)? {
+            let path = entry?.path();
+            let to = dir
+                .join("figures")
+                .join(path.file_name().expect("a file name"));
+            std::fs::rename(&path, &to)
+                .with_context(|| format!("moving {} to {}", path.display(), to.display()))?;
+            drawn.push(to);
+        }
+        std::fs::remove_dir_all(&staging)
+            .with_context(|| format!("removing {}", staging.display()))?;
+        drawn.sort();
+        Ok(drawn)
     }
 
     fn write_into(&self, dir: &Path) -> Result<()> {

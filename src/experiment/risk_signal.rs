@@ -21,7 +21,7 @@ pub struct RiskSignalSpec {
 }
 
 /// One risk term of one run over the window.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RiskTermRow {
     pub run: String,
     pub term: String,
@@ -58,11 +58,7 @@ fn metrics_path(spec: &ExperimentSpec, r: &RunSpec) -> Option<PathBuf> {
     if local.exists() {
         return Some(local);
     }
-    let shipped = spec
-        .shipped_dir
-        .as_ref()?
-        .join(spec.run_dir_name(r))
-        .join("metrics.csv");
+    let shipped = spec.shipped_copy(r)?.join("metrics.csv");
     shipped.exists().then_some(shipped)
 }
 

@@ -132,6 +132,10 @@ pub struct RunSpec {
     pub seed: u64,
     /// PPO iterations (RMA's phase 2 comes on top, from its config).
     pub iterations: usize,
+    /// This run's shipped copy, when it is not `<shipped_dir>/<name>-s<seed>`: a run
+    /// another experiment trained and shipped with the same config, reused as it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shipped: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -434,6 +438,14 @@ impl ExperimentSpec {
     /// `<runs_dir>/<name>-s<seed>`.
     pub fn run_dir(&self, r: &RunSpec) -> PathBuf {
         self.runs_dir.join(self.run_dir_name(r))
+    }
+
+    /// Where run `r` is shipped: its own `shipped` folder, else
+    /// `<shipped_dir>/<name>-s<seed>`; `None` when neither is set.
+    pub fn shipped_copy(&self, r: &RunSpec) -> Option<PathBuf> {
+        r.shipped
+            .clone()
+            .or_else(|| Some(self.shipped_dir.as_ref()?.join(self.run_dir_name(r))))
     }
 }
 

@@ -52,3 +52,20 @@ pub fn tiny_method(method: &str) -> TrainConfig {
     c.runner.iterations = 1;
     c
 }
+
+/// Metrics rows without the timing columns (names ending in `_s`, and the rate).
+#[allow(dead_code)]
+pub fn metrics_without_timing(run: &std::path::Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let keep: Vec<usize> = (0..head.len())
+        .filter(|&i| !head[i].ends_with("_s") && head[i] != "env_steps_per_s")
+        .collect();
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            keep.iter().map(|&i| f[i].to_string()).collect()
+        })
+        .collect()
+}
