@@ -590,10 +590,7 @@ fn the_shipped_policies_without_checksums_still_load() {
                 "{}: an old checkpoint resumes, not exactly",
                 f.display()
             );
-        } else if f.file_name().is_some_and(|n| n == LATEST)
-            && !rall::runner::policy_file::is_actor_only(&c.metadata)
-        {
-            // (a finished run is shipped actor-only: it evaluates, it does not resume)
+        } else if f.file_name().is_some_and(|n| n == LATEST) {
             assert!(
                 p.exact,
                 "{}: a shipped run state resumes exactly",
