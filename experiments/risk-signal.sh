@@ -14,7 +14,7 @@ cd "$(dirname "$0")/.."
 RALL="${RALL:-target/release/rall}"
 JOBS="${JOBS:-2}"
 ITERATIONS=1500
-declare -A CONFIG=([paper]=configs/rall.toml [dt-scaled]=configs/rall-dt-scaled.toml [rare]=configs/rall-rare.toml)
+declare -A CONFIG=([paper]=configs/rall-paper-weights.toml [dt-scaled]=configs/rall.toml [rare]=configs/rall-rare.toml)
 SHIPPED=policies/risk-signal
 if [ "${1:-}" = "--ship" ]; then
   for dir in runs/risk-signal/*/; do
