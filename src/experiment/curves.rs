@@ -56,18 +56,11 @@ struct CurvePointFile {
 
 impl<'de> Deserialize<'de> for CurvePoint {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CurvePoint, D::Error> {
-        CurvePointFile::deserialize(d)?
-            .try_into()
-            .map_err(serde::de::Error::custom)
-    }
-}
-
-impl TryFrom<CurvePointFile> for CurvePoint {
-    type Error = String;
-    fn try_from(f: CurvePointFile) -> Result<CurvePoint, String> {
+        let f = CurvePointFile::deserialize(d)?;
+        let name = |n: &str| static_name(n).map_err(serde::de::Error::custom);
         Ok(CurvePoint {
-            benchmark: static_name(&f.benchmark)?,
-            metric: static_name(&f.metric)?,
+            benchmark: name(&f.benchmark)?,
+            metric: name(&f.metric)?,
             policy: f.policy,
             severity: f.severity,
             estimate: f.estimate,

@@ -123,17 +123,10 @@ struct CheckpointSpreadFile {
 
 impl<'de> Deserialize<'de> for CheckpointSpread {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CheckpointSpread, D::Error> {
-        CheckpointSpreadFile::deserialize(d)?
-            .try_into()
-            .map_err(serde::de::Error::custom)
-    }
-}
-
-impl TryFrom<CheckpointSpreadFile> for CheckpointSpread {
-    type Error = String;
-    fn try_from(f: CheckpointSpreadFile) -> Result<CheckpointSpread, String> {
+        let f = CheckpointSpreadFile::deserialize(d)?;
+        let name = |n: &str| super::curves::static_name(n).map_err(serde::de::Error::custom);
         Ok(CheckpointSpread {
-            benchmark: super::curves::static_name(&f.benchmark)?,
+            benchmark: name(&f.benchmark)?,
             run: f.run,
             iterations: f.iterations,
             values: f.values,

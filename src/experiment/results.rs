@@ -795,35 +795,16 @@ impl ExperimentResults {
     /// into a fresh folder beside it, then each file into place by a rename, so a
     /// failure while writing leaves what `dir` held untouched.
     pub fn write(&self, dir: &Path) -> Result<()> {
-        let name = dir
-            .file_name()
-            .map_or("results".into(), |n| n.to_string_lossy().into_owned());
-        let staging = dir.with_file_name(format!(".{name}.rall-tmp"));
-        if staging.exists() {
-            std::fs::remove_dir_all(&staging)
-                .with_context(|| format!("removing {}", staging.display()))?;
-        }
+        let staging = fresh_staging(dir)?;
         self.write_into(&staging)?;
-        std::fs::create_dir_all(dir.join("figures"))
-            .with_context(|| format!("creating {}", dir.display()))?;
-        for sub in ["", "figures"] {
-            for entry in std::fs::read_dir(staging.join(sub))? {
-                let path = entry?.path();
-                if path.is_file() {
-                    let to = dir.join(sub).join(path.file_name().expect("a file name"));
-                    std::fs::rename(&path, &to).with_context(|| {
-                        format!("moving {} to {}", path.display(), to.display())
-                    })?;
-                }
-            }
-        }
-        std::fs::remove_dir_all(&staging).with_context(|| format!("removing {}", staging.display()))
+        move_staged(&staging, dir, &["", "figures"])?;
+        Ok(())
     }
 
     /// Draws the figures of the results already written in `dir` (its
     /// `results.json`) again with the current figure code, without evaluating
-    /// anything: each figure is drawn into a staging folder, then renamed over
-    /// the old one. Nothing else in `dir` changes.
+    /// anything: the figures are drawn into a staging folder, then renamed over
+    /// the old ones. Nothing else in `dir` changes.
     pub fn redraw_figures(dir: &Path) -> Result<Vec<PathBuf>> {
         let json = dir.join("results.json");
         let text = std::fs::read_to_string(&json).with_context(|| {
@@ -834,29 +815,11 @@ impl ExperimentResults {
         })?;
         let results: ExperimentResults = serde_json::from_str(&text)
             .with_context(|| format!("{} is not a results file of this version", json.display()))?;
-        let staging = dir.join(".figures.rall-tmp");
-        if staging.exists() {
-            std::fs::remove_dir_all(&staging)
-                .with_context(|| format!("removing {}", staging.display()))?;
-        }
-        std::fs::create_dir_all(&staging)
+        let staging = fresh_staging(dir)?;
+        std::fs::create_dir_all(staging.join("figures"))
             .with_context(|| format!("creating {}", staging.display()))?;
-        super::plots::write_all(&results, &staging)?;
-        std::fs::create_dir_all(dir.join("figures"))?;
-        let mut drawn = Vec::new();
-        for entry in std::fs::read_dir(&staging)? {
-            let path = entry?.path();
-            let to = dir
-                .join("figures")
-                .join(path.file_name().expect("a file name"));
-            std::fs::rename(&path, &to)
-                .with_context(|| format!("moving {} to {}", path.display(), to.display()))?;
-            drawn.push(to);
-        }
-        std::fs::remove_dir_all(&staging)
-            .with_context(|| format!("removing {}", staging.display()))?;
-        drawn.sort();
-        Ok(drawn)
+        super::plots::write_all(&results, &staging.join("figures"))?;
+        move_staged(&staging, dir, &["figures"])
     }
 
     fn write_into(&self, dir: &Path) -> Result<()> {
@@ -877,6 +840,42 @@ impl ExperimentResults {
         )?;
         super::plots::write_all(self, &dir.join("figures"))
     }
+}
+
+/// An empty staging folder beside results folder `dir` (`.<name>.rall-tmp`).
+fn fresh_staging(dir: &Path) -> Result<PathBuf> {
+    let name = dir
+        .file_name()
+        .map_or("results".into(), |n| n.to_string_lossy().into_owned());
+    let staging = dir.with_file_name(format!(".{name}.rall-tmp"));
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging)
+            .with_context(|| format!("removing {}", staging.display()))?;
+    }
+    Ok(staging)
+}
+
+/// Renames every file of `staging`'s subfolders `subs` ("" is the folder itself)
+/// into the same subfolders of `dir`, then removes `staging`; returns the files'
+/// new paths, sorted.
+fn move_staged(staging: &Path, dir: &Path, subs: &[&str]) -> Result<Vec<PathBuf>> {
+    let mut moved = Vec::new();
+    for sub in subs {
+        std::fs::create_dir_all(dir.join(sub))
+            .with_context(|| format!("creating {}", dir.join(sub).display()))?;
+        for entry in std::fs::read_dir(staging.join(sub))? {
+            let path = entry?.path();
+            if path.is_file() {
+                let to = dir.join(sub).join(path.file_name().expect("a file name"));
+                std::fs::rename(&path, &to)
+                    .with_context(|| format!("moving {} to {}", path.display(), to.display()))?;
+                moved.push(to);
+            }
+        }
+    }
+    std::fs::remove_dir_all(staging).with_context(|| format!("removing {}", staging.display()))?;
+    moved.sort();
+    Ok(moved)
 }
 
 /// The paper's number of `method` at rung 0 of `benchmark`'s curve: table I's
