@@ -232,7 +232,8 @@ pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool>
 }
 
 /// Copies every run's newest readable checkpoint (as `latest.safetensors`) with
-/// its config and metrics into `shipped_dir`, with a README saying how it was made.
+/// its config and metrics into its shipped copy (`shipped_dir`, or the run's own
+/// `shipped` folder), with a README saying how it was made.
 pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
     for r in &spec.runs {
         let rd = RunDir {

@@ -86,22 +86,18 @@ fn run_rows(label: &str, path: &Path, window: usize) -> Result<Vec<RiskTermRow>>
     let (Some(it_col), Some(steps_col)) = (column("iteration"), column("total_env_steps")) else {
         bail!("no iteration or total_env_steps column");
     };
-    let rows: Vec<Vec<f64>> = lines
-        .map(|l| {
-            l.split(',')
-                .map(|v| v.parse().unwrap_or(f64::NAN))
-                .collect()
-        })
-        .filter(|v: &Vec<f64>| v.len() == header.len())
-        .collect();
+    let rows = parse_rows(lines, header.len())?;
     if rows.len() < 2 {
         return Ok(Vec::new());
     }
     let first = rows.len().saturating_sub(window).max(1);
     let recent = &rows[first..];
-    let sum = |col: usize| recent.iter().map(|v| v[col]).sum::<f64>();
-    let robot_steps =
-        (rows[rows.len() - 1][steps_col] - rows[first - 1][steps_col]).max(0.0) as u64;
+    let value = |row: &[Option<f64>], col: usize| row[col].unwrap_or(f64::NAN);
+    // a column added to metrics.csv after the run started is empty in its older rows:
+    // a term whose window holds such a row is left out, not summed as zero
+    let sum = |col: usize| -> Option<f64> { recent.iter().map(|v| v[col]).sum() };
+    let robot_steps = (value(&rows[rows.len() - 1], steps_col) - value(&rows[first - 1], steps_col))
+        .max(0.0) as u64;
     let mut out = Vec::new();
     for h in &header {
         let Some(term) = h.strip_prefix("risk_fired_before_fall_") else {
@@ -114,18 +110,56 @@ fn run_rows(label: &str, path: &Path, window: usize) -> Result<Vec<RiskTermRow>>
         ) else {
             continue;
         };
+        let (Some(crossings), Some(firings), Some(firings_before_fall)) =
+            (sum(crossed), sum(fired), sum(before))
+        else {
+            continue;
+        };
         out.push(RiskTermRow {
             run: label.to_string(),
             term: term.to_string(),
-            first_iteration: recent[0][it_col] as usize,
-            last_iteration: recent[recent.len() - 1][it_col] as usize,
+            first_iteration: value(&recent[0], it_col) as usize,
+            last_iteration: value(&recent[recent.len() - 1], it_col) as usize,
             robot_steps,
-            crossings: sum(crossed),
-            firings: sum(fired),
-            firings_before_fall: sum(before),
+            crossings,
+            firings,
+            firings_before_fall,
         });
     }
     Ok(out)
+}
+
+/// The data rows of a metrics file: an empty field is `None` (a column the run did
+/// not log yet); a row of another width or a field that is not a number is refused,
+/// naming its line.
+fn parse_rows<'a>(
+    lines: impl Iterator<Item = &'a str>,
+    width: usize,
+) -> Result<Vec<Vec<Option<f64>>>> {
+    lines
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| {
+            let line = i + 2;
+            let fields: Vec<&str> = l.split(',').collect();
+            if fields.len() != width {
+                bail!(
+                    "line {line} has {} fields, the header {width}",
+                    fields.len()
+                );
+            }
+            fields
+                .iter()
+                .enumerate()
+                .map(|(c, v)| match v.trim() {
+                    "" => Ok(None),
+                    v => v.parse().map(Some).with_context(|| {
+                        format!("line {line}, column {}: {v:?} is not a number", c + 1)
+                    }),
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// `risk_signal.csv`.
@@ -221,6 +255,23 @@ mod tests {
         assert_eq!(r.firings_before_fall, 1.0); // iteration 7
         assert_eq!(r.share_before_fall(), Some(0.5));
         assert!((r.crossings_per_1k_steps() - 85.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn damaged_metrics_are_refused_naming_the_line_and_unlogged_terms_left_out() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let head = "iteration,total_env_steps,risk_exceeded_roll,risk_fired_roll,risk_fired_before_fall_roll\n";
+        std::fs::write(&path, format!("{head}1,10,1,0,0\n2,20,1,x,0\n")).unwrap();
+        let e = format!("{:#}", run_rows("r", &path, 5).unwrap_err());
+        assert!(e.contains("line 3") && e.contains("\"x\""), "{e}");
+        std::fs::write(&path, format!("{head}1,10,1,0,0\n2,20,1\n")).unwrap();
+        let e = format!("{:#}", run_rows("r", &path, 5).unwrap_err());
+        assert!(e.contains("line 3") && e.contains("3 fields"), "{e}");
+        // the before-a-fall column was added mid-run: empty in the older rows
+        std::fs::write(&path, format!("{head}1,10,1,0,\n2,20,1,0,\n3,30,1,1,1\n")).unwrap();
+        assert!(run_rows("r", &path, 5).unwrap().is_empty());
+        assert_eq!(run_rows("r", &path, 1).unwrap()[0].firings_before_fall, 1.0);
     }
 
     #[test]
