@@ -52,7 +52,8 @@ pub enum Precision {
     Bf16,
     /// Inputs rounded to bf16, products summed in f32 by AVX512-BF16's
     /// `VDPBF16PS` ([`super::bf16_avx512`]: AMD Zen 4 and later, Intel Cooper
-    /// Lake); f32 where the CPU lacks it. Config value `"bf16-avx512"`.
+    /// Lake); f32 where the CPU lacks it, and for the narrow products where f32 is
+    /// faster ([`super::bf16_avx512::pays_off`]). Config value `"bf16-avx512"`.
     #[serde(rename = "bf16-avx512")]
     Bf16Avx512,
 }
@@ -263,7 +264,9 @@ fn gemm_at_precision(
         Precision::Bf16 if super::amx::available() => {
             return super::amx::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
         }
-        Precision::Bf16Avx512 if super::bf16_avx512::available() => {
+        Precision::Bf16Avx512
+            if super::bf16_avx512::available() && super::bf16_avx512::pays_off(n, k) =>
+        {
             return super::bf16_avx512::gemm_bf16(m, n, k, a, a_t, b, b_t, c, accumulate);
         }
         _ => {}
