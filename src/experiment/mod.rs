@@ -756,9 +756,17 @@ fn track_all(
         };
         let env = tracking_env(&p.env);
         let own = track(&env)?;
+        // a common randomisation equal to the run's own is the same evaluation: reused
         let on_common = common
             .iter()
-            .map(|c| track(&with_randomization(env.clone(), c)))
+            .map(|c| {
+                let common_env = with_randomization(env.clone(), c);
+                if common_env == env {
+                    Ok(own.clone())
+                } else {
+                    track(&common_env)
+                }
+            })
             .collect::<Result<Vec<_>>>()?;
         tracking.push(RunTracking {
             label: r.label.clone(),
