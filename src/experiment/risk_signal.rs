@@ -86,13 +86,15 @@ fn run_rows(label: &str, path: &Path, window: usize) -> Result<Vec<RiskTermRow>>
     let (Some(it_col), Some(steps_col)) = (column("iteration"), column("total_env_steps")) else {
         bail!("no iteration or total_env_steps column");
     };
-    let rows = parse_rows(lines, header.len())?;
+    let rows = parse_rows(lines, &header, &[it_col, steps_col])?;
     if rows.len() < 2 {
         return Ok(Vec::new());
     }
     let first = rows.len().saturating_sub(window).max(1);
     let recent = &rows[first..];
-    let value = |row: &[Option<f64>], col: usize| row[col].unwrap_or(f64::NAN);
+    let value = |row: &[Option<f64>], col: usize| {
+        row[col].expect("a required field, checked by parse_rows")
+    };
     // a column added to metrics.csv after the run started is empty in its older rows:
     // a term whose window holds such a row is left out, not summed as zero
     let sum = |col: usize| -> Option<f64> { recent.iter().map(|v| v[col]).sum() };
@@ -130,12 +132,14 @@ fn run_rows(label: &str, path: &Path, window: usize) -> Result<Vec<RiskTermRow>>
 }
 
 /// The data rows of a metrics file: an empty field is `None` (a column the run did
-/// not log yet); a row of another width or a field that is not a number is refused,
-/// naming its line.
+/// not log yet); a row of another width, a field that is not a number or an empty
+/// field in a `required` column is refused, naming its line.
 fn parse_rows<'a>(
     lines: impl Iterator<Item = &'a str>,
-    width: usize,
+    header: &[&str],
+    required: &[usize],
 ) -> Result<Vec<Vec<Option<f64>>>> {
+    let width = header.len();
     lines
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
@@ -152,6 +156,7 @@ fn parse_rows<'a>(
                 .iter()
                 .enumerate()
                 .map(|(c, v)| match v.trim() {
+                    "" if required.contains(&c) => bail!("line {line}: no {}", header[c]),
                     "" => Ok(None),
                     v => v.parse().map(Some).with_context(|| {
                         format!("line {line}, column {}: {v:?} is not a number", c + 1)
@@ -268,6 +273,12 @@ mod tests {
         std::fs::write(&path, format!("{head}1,10,1,0,0\n2,20,1\n")).unwrap();
         let e = format!("{:#}", run_rows("r", &path, 5).unwrap_err());
         assert!(e.contains("line 3") && e.contains("3 fields"), "{e}");
+        std::fs::write(&path, format!("{head}1,10,1,0,0\n2,,1,0,0\n")).unwrap();
+        let e = format!("{:#}", run_rows("r", &path, 5).unwrap_err());
+        assert!(
+            e.contains("line 3") && e.contains("no total_env_steps"),
+            "{e}"
+        );
         // the before-a-fall column was added mid-run: empty in the older rows
         std::fs::write(&path, format!("{head}1,10,1,0,\n2,20,1,0,\n3,30,1,1,1\n")).unwrap();
         assert!(run_rows("r", &path, 5).unwrap().is_empty());
