@@ -355,6 +355,13 @@ fn eval_ttf_prints_a_complete_table_with_an_untrained_checkpoint() {
         .collect();
     let second: Vec<f64> = again.cells.iter().map(|c| c.ttf).collect();
     assert_eq!(first, second, "deterministic for a fixed seed set");
+    // One thread or two (rollouts side by side), the same numbers to the bit.
+    let one = TtfOptions {
+        threads: 1,
+        ..opts.clone()
+    };
+    let serial = evaluate_ttf(&policies, &one, |_| {}).unwrap();
+    assert_eq!(serial.csv(), report.csv(), "thread count changed table I");
 }
 
 #[test]
@@ -376,6 +383,12 @@ fn platform_and_race_tables_with_untrained_checkpoints() {
     };
     let p = evaluate_platform(&policies, &opts, |_| {}).unwrap();
     assert_eq!(p.cells.len(), 4);
+    let one = PlatformOptions {
+        threads: 1,
+        ..opts.clone()
+    };
+    let serial = evaluate_platform(&policies, &one, |_| {}).unwrap();
+    assert_eq!(serial.csv(), p.csv(), "thread count changed table II");
     let md = p.markdown();
     assert!(
         md.contains("| 0.40 m | RALL |") && md.contains("| 0.45 m | RALL |"),
@@ -426,6 +439,12 @@ fn platform_and_race_tables_with_untrained_checkpoints() {
         .iqr_by_x
         .iter()
         .all(|b| b.mean_iqr >= 0.0 && b.safe_fraction > 0.99));
+    let one = RaceOptions {
+        threads: 1,
+        ..race.clone()
+    };
+    let serial = evaluate_race(&policies, std::slice::from_ref(&meta), &one, |_| {}).unwrap();
+    assert_eq!(serial.csv(), r.csv(), "thread count changed the race");
     let md = r.markdown();
     println!("{md}");
     assert!(md.contains("| Meta |") && md.contains("switches to SAFE"));

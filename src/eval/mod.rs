@@ -4,11 +4,13 @@
 //!   ground, platform, race course): env config + model + per-env hook.
 //! - [`ttf`]: Time to Fall (paper table I); [`platform`]: platform drops
 //!   (table II); [`race`]: race-track returns and the IQR meta controller (fig. 4).
+//! - [`jobs`]: independent rollouts side by side, one thread each.
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
 //! - [`severity`]: the severity ladder (rung 0 = the paper's protocol, harder above).
 
 pub mod falls;
 pub mod ground;
+pub mod jobs;
 pub mod mjcf;
 pub mod platform;
 pub mod policy;

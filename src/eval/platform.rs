@@ -17,6 +17,7 @@
 use anyhow::Result;
 use serde::Serialize;
 
+use super::jobs::run_jobs;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{run_first_episodes, FirstEpisode, NamedPolicy};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
@@ -240,27 +241,38 @@ pub fn evaluate_platform(
         opts.repeats > 0 && !opts.seeds.is_empty(),
         "need at least one seed and one repeat"
     );
-    let mut cells = Vec::new();
+    // every (height, policy, seed) is its own rollout; they run side by side
+    let mut jobs = Vec::new();
     for &h in &opts.heights_m {
         let spec = ScenarioSpec::new(opts.load, GroundKind::Platform { height_m: h }, false);
         for p in policies {
-            let mut outcomes = Vec::new();
             for &seed in &opts.seeds {
-                let setup = build_scenario(&spec, &p.env, &opts.params, seed)?;
-                outcomes.extend(platform_outcomes(
-                    &p.policy,
-                    &setup,
-                    opts.repeats,
-                    opts.threads,
-                    seed,
-                    opts.settle_s,
-                )?);
+                jobs.push((h, spec, p, seed));
             }
-            let (o, e): (Vec<DropOutcome>, Vec<FirstEpisode>) = outcomes.into_iter().unzip();
-            let cell = PlatformCell::from_outcomes(h, &p.name, &o).with_ends(&e);
-            progress(&cell);
-            cells.push(cell);
         }
+    }
+    let rollouts = run_jobs(&jobs, opts.threads, |(_, spec, p, seed), threads| {
+        let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
+        platform_outcomes(
+            &p.policy,
+            &setup,
+            opts.repeats,
+            threads,
+            *seed,
+            opts.settle_s,
+        )
+    })?;
+    let mut cells = Vec::new();
+    for (cell_jobs, cell_rollouts) in jobs
+        .chunks(opts.seeds.len())
+        .zip(rollouts.chunks(opts.seeds.len()))
+    {
+        let (h, _, p, _) = cell_jobs[0];
+        let (o, e): (Vec<DropOutcome>, Vec<FirstEpisode>) =
+            cell_rollouts.iter().flatten().copied().unzip();
+        let cell = PlatformCell::from_outcomes(h, &p.name, &o).with_ends(&e);
+        progress(&cell);
+        cells.push(cell);
     }
     Ok(PlatformReport {
         policies: policies.iter().map(|p| p.name.clone()).collect(),

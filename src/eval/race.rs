@@ -14,6 +14,7 @@
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
+use super::jobs::run_jobs;
 use super::policy::Actor;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{mean, quantile, NamedPolicy, ScenarioRun};
@@ -450,30 +451,38 @@ pub fn evaluate_race(
         opts.agents > 0 && opts.episodes > 0,
         "need at least one agent and one episode"
     );
-    let mut rows = Vec::new();
-    for p in policies {
-        let (eps, _) = run_race(&Driver::Single(p), opts)?;
-        let row = RaceRow::new(&p.name, &eps, None);
-        progress(&row);
-        rows.push(row);
-    }
+    let find = |n: &str| {
+        policies
+            .iter()
+            .find(|p| p.name == n)
+            .with_context(|| format!("meta controller: no policy named {n:?}"))
+    };
+    // every policy's race, then every meta controller's; they run side by side
+    let mut drivers: Vec<(String, Driver)> = policies
+        .iter()
+        .map(|p| (p.name.clone(), Driver::Single(p)))
+        .collect();
     for cfg in metas {
-        let find = |n: &str| {
-            policies
-                .iter()
-                .find(|p| p.name == n)
-                .with_context(|| format!("meta controller: no policy named {n:?}"))
-        };
         let (risky, safe) = (find(&cfg.risky)?, find(&cfg.safe)?);
-        let (eps, log) = run_race(
-            &Driver::Meta {
-                risky,
-                safe,
-                cfg: cfg.clone(),
+        let meta = Driver::Meta {
+            risky,
+            safe,
+            cfg: cfg.clone(),
+        };
+        drivers.push((cfg.name.clone(), meta));
+    }
+    let raced = run_jobs(&drivers, opts.threads, |(_, driver), threads| {
+        run_race(
+            driver,
+            &RaceOptions {
+                threads,
+                ..opts.clone()
             },
-            opts,
-        )?;
-        let row = RaceRow::new(&cfg.name, &eps, log);
+        )
+    })?;
+    let mut rows = Vec::new();
+    for ((name, _), (eps, log)) in drivers.iter().zip(raced) {
+        let row = RaceRow::new(name, &eps, log);
         progress(&row);
         rows.push(row);
     }

@@ -10,6 +10,7 @@
 use anyhow::Result;
 use serde::Serialize;
 
+use super::jobs::run_jobs;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{mean, run_first_episodes, FirstEpisode, NamedPolicy};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
@@ -169,32 +170,43 @@ pub fn evaluate_ttf(
         opts.repeats > 0 && !opts.seeds.is_empty(),
         "need at least one seed and one repeat"
     );
-    let mut cells = Vec::new();
+    // every (setup, policy, seed) is its own rollout; they run side by side
+    let mut jobs = Vec::new();
     for &load in &opts.loads {
         for terrain in &opts.terrains {
             for &push in &opts.pushes {
                 let spec = ScenarioSpec::new(load, *terrain, push);
                 for p in policies {
-                    let mut per_seed = Vec::with_capacity(opts.seeds.len());
-                    let mut episode_steps = 0;
                     for &seed in &opts.seeds {
-                        let setup = build_scenario(&spec, &p.env, &opts.params, seed)?;
-                        episode_steps = setup.env.max_episode_steps();
-                        per_seed.push(run_first_episodes(
-                            &p.policy,
-                            &setup,
-                            opts.repeats,
-                            opts.threads,
-                            seed,
-                            |_, _, _| {},
-                        )?);
+                        jobs.push((spec, p, seed));
                     }
-                    let cell = ttf_cell(&spec, &p.name, &per_seed, episode_steps);
-                    progress(&cell);
-                    cells.push(cell);
                 }
             }
         }
+    }
+    let rollouts = run_jobs(&jobs, opts.threads, |(spec, p, seed), threads| {
+        let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
+        let first = run_first_episodes(
+            &p.policy,
+            &setup,
+            opts.repeats,
+            threads,
+            *seed,
+            |_, _, _| {},
+        )?;
+        Ok((first, setup.env.max_episode_steps()))
+    })?;
+    let mut cells = Vec::new();
+    for (cell_jobs, cell_rollouts) in jobs
+        .chunks(opts.seeds.len())
+        .zip(rollouts.chunks(opts.seeds.len()))
+    {
+        let (spec, p, _) = cell_jobs[0];
+        let episode_steps = cell_rollouts.last().map_or(0, |r| r.1);
+        let per_seed: Vec<Vec<FirstEpisode>> = cell_rollouts.iter().map(|r| r.0.clone()).collect();
+        let cell = ttf_cell(&spec, &p.name, &per_seed, episode_steps);
+        progress(&cell);
+        cells.push(cell);
     }
     Ok(TtfReport {
         policies: policies.iter().map(|p| p.name.clone()).collect(),

@@ -741,8 +741,13 @@ fn track_all(
         .iter()
         .map(|path| Ok(TrainConfig::from_toml_file(path)?.env.randomization))
         .collect::<Result<Vec<_>>>()?;
-    let mut tracking = Vec::new();
-    for (r, _) in runs.iter().filter(|(r, _)| available.contains(&r.label)) {
+    let tracked: Vec<&spec::RunSpec> = runs
+        .iter()
+        .map(|(r, _)| r)
+        .filter(|r| available.contains(&r.label))
+        .collect();
+    // each run's evaluations on its own thread, the runs side by side
+    crate::eval::jobs::run_jobs(&tracked, threads, |r, threads| {
         let (p, policy_iteration) = load_final_policy(spec, &r.label)?;
         let track = |env: &EnvConfig| {
             evaluate_tracking(
@@ -768,14 +773,13 @@ fn track_all(
                 }
             })
             .collect::<Result<Vec<_>>>()?;
-        tracking.push(RunTracking {
+        Ok(RunTracking {
             label: r.label.clone(),
             own,
             common: on_common,
             policy_iteration,
-        });
-    }
-    Ok(tracking)
+        })
+    })
 }
 
 fn ttf_options(spec: &ExperimentSpec, threads: usize) -> Result<TtfOptions> {
