@@ -132,6 +132,19 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         assert!(lo <= x && x <= hi, "{line}");
         assert!(v[3] == "0" || v[3] == "4", "{line}");
     }
+    // where the evaluation's time went: every stage, and each higher rung's benchmarks
+    let time = std::fs::read_to_string(out.join("evaluation_time.txt")).unwrap();
+    for phase in [
+        "velocity tracking of every policy",
+        "table I: time to fall",
+        "race track",
+        "robustness curves over the severity ladder",
+        "curves, rung 4, time to fall",
+        "curves, rung 4, race",
+    ] {
+        assert!(time.contains(&format!("  {phase}: ")), "{phase}: {time}");
+    }
+    assert!(!time.contains("rung 0"), "rung 0 reuses the tables: {time}");
     // each run's number is over its last two checkpoints, with the spread kept
     let spread = std::fs::read_to_string(out.join("checkpoints.csv")).unwrap();
     assert!(spread.contains("ttf,Baseline,2,") && spread.contains("ttf,Baseline,1,"));

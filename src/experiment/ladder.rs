@@ -3,6 +3,8 @@
 //! each higher rung runs the benchmarks again with that rung's perturbations,
 //! on as many robots as `[curves]` gives.
 
+use std::time::Instant;
+
 use anyhow::Result;
 
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
@@ -65,15 +67,23 @@ fn points_at(
     out
 }
 
-/// One rung above 0: the tables' evaluations with the rung's perturbations.
+/// Minutes since `t`.
+fn min_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() / 60.0
+}
+
+/// One rung above 0: the tables' evaluations with the rung's perturbations (and
+/// the minutes each benchmark took, added to `phases`).
 fn evaluate_rung(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     severity: usize,
     tables: &TableRuns,
+    phases: &mut Vec<(String, f64)>,
 ) -> Result<Vec<CurvePoint>> {
     let ladder = c.ladder()?;
     let rung = ladder.rung(severity)?;
+    let t = Instant::now();
     let ttf = if tables.ttf.1.is_empty() {
         None
     } else {
@@ -85,6 +95,11 @@ fn evaluate_rung(
         };
         Some(evaluate_ttf_runs(spec, &tables.ttf.1, &opts, |_| {})?.0)
     };
+    phases.push((
+        format!("curves, rung {severity}, time to fall"),
+        min_since(t),
+    ));
+    let t = Instant::now();
     let platform = if tables.platform.1.is_empty() {
         None
     } else {
@@ -97,6 +112,8 @@ fn evaluate_rung(
         };
         Some(evaluate_platform_runs(spec, &tables.platform.1, &opts, |_| {})?.0)
     };
+    phases.push((format!("curves, rung {severity}, platform"), min_since(t)));
+    let t = Instant::now();
     let race = if tables.race.1.is_empty() {
         None
     } else {
@@ -109,6 +126,7 @@ fn evaluate_rung(
         let policies = load_runs(spec, &tables.race.1)?;
         Some(evaluate_race(&policies, tables.metas, &opts, |_| {})?)
     };
+    phases.push((format!("curves, rung {severity}, race"), min_since(t)));
     let reports = RungReports {
         ttf: ttf.as_ref(),
         platform: platform.as_ref(),
@@ -117,12 +135,14 @@ fn evaluate_rung(
     Ok(points_at(spec, severity, &reports, tables))
 }
 
-/// Every rung of `c`: rung 0 from the tables' `reports`, the others evaluated.
+/// Every rung of `c`: rung 0 from the tables' `reports`, the others evaluated
+/// (each benchmark's minutes added to `phases`).
 pub(super) fn evaluate_curves(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     reports: &RungReports,
     tables: &TableRuns,
+    phases: &mut Vec<(String, f64)>,
 ) -> Result<Vec<CurvePoint>> {
     let mut points = Vec::new();
     for &s in &c.severity {
@@ -130,7 +150,7 @@ pub(super) fn evaluate_curves(
         let at = if s == 0 {
             points_at(spec, 0, reports, tables)
         } else {
-            evaluate_rung(spec, c, s, tables)?
+            evaluate_rung(spec, c, s, tables, phases)?
         };
         for p in &at {
             eprintln!(

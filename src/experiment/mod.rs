@@ -868,6 +868,52 @@ fn race_runs(methods: Vec<String>, metas: &[MetaConfig]) -> Vec<String> {
     labels
 }
 
+/// The evaluation's stages as they start (printed), and the minutes each took.
+struct PhaseClock {
+    start: Instant,
+    stages: usize,
+    started: usize,
+    current: Option<(String, Instant)>,
+    /// (phase, minutes) of the stages ended so far, and any finer phases added.
+    phases: Vec<(String, f64)>,
+}
+
+impl PhaseClock {
+    fn new(stages: usize) -> PhaseClock {
+        PhaseClock {
+            start: Instant::now(),
+            stages,
+            started: 0,
+            current: None,
+            phases: Vec::new(),
+        }
+    }
+
+    /// Ends the current stage and starts `what`.
+    fn next(&mut self, what: &str) {
+        self.end_current();
+        let k = self.started + 1;
+        eprintln!(
+            "[eval {k}/{}] {what} ({:.1} min so far)",
+            self.stages,
+            self.start.elapsed().as_secs_f64() / 60.0
+        );
+        self.current = Some((what.to_string(), Instant::now()));
+        self.started += 1;
+    }
+
+    fn end_current(&mut self) {
+        if let Some((what, t)) = self.current.take() {
+            self.phases.push((what, t.elapsed().as_secs_f64() / 60.0));
+        }
+    }
+
+    fn finish(mut self) -> Vec<(String, f64)> {
+        self.end_current();
+        self.phases
+    }
+}
+
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
 pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
     let threads = crate::config::worker_threads(spec.threads);
@@ -880,21 +926,16 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         out
     };
     let stages = if spec.curves.is_some() { 6 } else { 5 };
-    let stage = |k: usize, what: &str| {
-        eprintln!(
-            "[eval {k}/{stages}] {what} ({:.1} min so far)",
-            start.elapsed().as_secs_f64() / 60.0
-        )
-    };
+    let mut clock = PhaseClock::new(stages);
     if spec.selection.is_some() {
         eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
         choose_final_policies(spec, threads)?;
         warn_unchosen_teachers(spec, &runs)?;
     }
-    stage(1, "velocity tracking of every policy");
+    clock.next("velocity tracking of every policy");
     let tracking = track_all(spec, &runs, &available, threads)?;
 
-    stage(2, "table I: time to fall");
+    clock.next("table I: time to fall");
     let ttf_opts = ttf_options(spec, threads)?;
     let ttf_methods = have(&spec.ttf.methods);
     let mut spread = Vec::new();
@@ -915,7 +956,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         Some(report)
     };
 
-    stage(3, "table II: platform drops");
+    clock.next("table II: platform drops");
     let platform_opts = platform_options(spec, threads);
     let platform_methods = have(&spec.platform.methods);
     let platform = if platform_methods.is_empty() {
@@ -932,13 +973,10 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         Some(report)
     };
 
-    stage(
-        4,
-        "meta controller thresholds (rule of the experiment file)",
-    );
+    clock.next("meta controller thresholds (rule of the experiment file)");
     let metas = meta_configs(spec, &available, threads)?;
 
-    stage(5, "race track");
+    clock.next("race track");
     let race_labels = race_runs(have(&spec.race.methods), &metas);
     let race_opts = race_options(spec, threads);
     let race = if race_labels.is_empty() {
@@ -954,7 +992,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     };
     let mut curves = Vec::new();
     if let Some(c) = &spec.curves {
-        stage(6, "robustness curves over the severity ladder");
+        clock.next("robustness curves over the severity ladder");
         let reports = ladder::RungReports {
             ttf: ttf.as_ref(),
             platform: platform.as_ref(),
@@ -966,10 +1004,12 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             race: (&race_opts, race_labels),
             metas: &metas,
         };
-        curves = ladder::evaluate_curves(spec, c, &reports, &tables)?;
+        curves = ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock.phases)?;
     }
     let wall_s = start.elapsed().as_secs_f64();
+    let phases = clock.finish();
     let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
+    results.phase_min = phases;
     results.set_curves(spec, curves)?;
     results.checkpoint_spread = spread;
     if let Some(rs) = &spec.risk_signal {

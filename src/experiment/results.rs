@@ -176,6 +176,9 @@ pub struct ExperimentResults {
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
     pub evaluation_wall_clock_min: f64,
+    /// Where the evaluation's time went: (phase, minutes), in order.
+    #[serde(skip)]
+    pub phase_min: Vec<(String, f64)>,
 }
 
 const TTF_COLUMNS: [(&str, bool); 4] = [
@@ -225,6 +228,7 @@ impl ExperimentResults {
             checkpoint_spread: Vec::new(),
             risk_signal: Vec::new(),
             evaluation_wall_clock_min: eval_wall_s / 60.0,
+            phase_min: Vec::new(),
         }
     }
 
@@ -822,6 +826,15 @@ impl ExperimentResults {
         move_staged(&staging, dir, &["figures"])
     }
 
+    /// The whole evaluation's minutes, then each phase's.
+    fn evaluation_time(&self) -> String {
+        let mut text = format!("{:.2} min\n", self.evaluation_wall_clock_min);
+        for (phase, min) in &self.phase_min {
+            text.push_str(&format!("  {phase}: {min:.2} min\n"));
+        }
+        text
+    }
+
     fn write_into(&self, dir: &Path) -> Result<()> {
         std::fs::create_dir_all(dir.join("figures"))
             .with_context(|| format!("creating {}", dir.display()))?;
@@ -834,10 +847,7 @@ impl ExperimentResults {
             write(name, &text)?;
         }
         write("results.json", &serde_json::to_string_pretty(self)?)?;
-        write(
-            "evaluation_time.txt",
-            &format!("{:.2} min\n", self.evaluation_wall_clock_min),
-        )?;
+        write("evaluation_time.txt", &self.evaluation_time())?;
         super::plots::write_all(self, &dir.join("figures"))
     }
 }
