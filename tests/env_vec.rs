@@ -224,6 +224,55 @@ fn same_seed_gives_bit_identical_rollouts_with_one_or_two_threads() {
     }
 }
 
+/// Robots left out of a step stand still, and the others step exactly as if
+/// every robot had stepped.
+#[test]
+fn robots_left_out_of_a_step_stand_still_and_change_nothing_for_the_others() {
+    let mut c = cfg();
+    c.episode.length_s = 1.0;
+    let c = Arc::new(c);
+    let scene = build_scene(&c, 5).unwrap();
+    let make = || VecEnv::new(c.clone(), &scene.model, None, 4, 2, 11).unwrap();
+    let (mut all, mut some) = (make(), make());
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    // robot 2 stops after step 10; 60 steps cross an episode end (50 steps)
+    for step in 0..60 {
+        let a = random_actions(&mut rng, 4);
+        let active = [true, true, step < 10, true];
+        let before: Vec<f32> = some.batch().obs[2 * OBS_DIM..3 * OBS_DIM].to_vec();
+        let full = all.step(&a).clone();
+        let part = some.step_active(&a, Some(&active));
+        for i in [0, 1, 3] {
+            let row = i * OBS_DIM..(i + 1) * OBS_DIM;
+            assert_eq!(
+                full.obs[row.clone()],
+                part.obs[row],
+                "robot {i}, step {step}"
+            );
+            assert_eq!(full.rewards[i].to_bits(), part.rewards[i].to_bits());
+            assert_eq!(full.dones[i], part.dones[i]);
+        }
+        if step >= 10 {
+            assert_eq!(
+                part.obs[2 * OBS_DIM..3 * OBS_DIM],
+                before[..],
+                "step {step}"
+            );
+            assert_eq!((part.rewards[2], part.dones[2]), (0.0, false));
+        }
+    }
+    let ended = |v: &mut VecEnv| v.drain_episodes().map(|e| e.env_index).collect::<Vec<_>>();
+    let (full_ends, part_ends) = (ended(&mut all), ended(&mut some));
+    let count = |ends: &[usize], i: usize| ends.iter().filter(|&&e| e == i).count();
+    for i in [0, 1, 3] {
+        assert_eq!(count(&full_ends, i), count(&part_ends, i), "robot {i}");
+    }
+    // 60 steps of 50-step episodes: every stepping robot ended one; robot 2
+    // only if it fell within its first 10 steps
+    assert!(count(&full_ends, 2) >= 1);
+    assert!(count(&part_ends, 2) < count(&full_ends, 2));
+}
+
 /// A resumed rough-ground run puts every robot back on its stored level.
 #[test]
 fn terrain_levels_are_restored_for_a_resume() {

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::config::EnvConfig;
 use super::observation::ACT_DIM;
 use super::risk::NUM_RISK_TERMS;
-use super::single::{Env, EpisodeSummary};
+use super::single::{Env, EpisodeSummary, StepResult};
 use super::snapshot::{StateReader, StateWriter};
 use super::terrain::{Curriculum, Terrain};
 use crate::sim::{ArenaUse, Model, Result, SimError};
@@ -208,11 +208,22 @@ impl VecEnv {
 
     /// Steps all envs with `actions` ([n x ACT_DIM]); results in [`VecEnv::batch`].
     pub fn step(&mut self, actions: &[f32]) -> &Batch {
+        self.step_active(actions, None)
+    }
+
+    /// Steps the envs whose `active` entry is true (all of them with `None`); the
+    /// others stand still: no physics, no RNG draw, their observation unchanged,
+    /// reward 0 and not done. Each env steps on its own state and RNG alone, so an
+    /// active env's results do not depend on which others stepped.
+    pub fn step_active(&mut self, actions: &[f32], active: Option<&[bool]>) -> &Batch {
         assert_eq!(
             actions.len(),
             self.envs.len() * ACT_DIM,
             "actions must be n_envs x {ACT_DIM}"
         );
+        if let Some(m) = active {
+            assert_eq!(m.len(), self.envs.len(), "one active flag per env");
+        }
         let start = Instant::now();
         let width = self.obs_width;
         let b = &mut self.batch;
@@ -225,8 +236,13 @@ impl VecEnv {
                 .zip(b.rewards.par_iter_mut())
                 .zip(b.dones.par_iter_mut())
                 .zip(b.time_outs.par_iter_mut())
-                .for_each(|((((((env, a), o), fo), r), d), t)| {
-                    let res = env.step(a, o, fo);
+                .enumerate()
+                .for_each(|(i, ((((((env, a), o), fo), r), d), t))| {
+                    let res = if active.is_none_or(|m| m[i]) {
+                        env.step(a, o, fo)
+                    } else {
+                        StepResult::default()
+                    };
                     *r = res.reward as f32;
                     *d = res.done;
                     *t = res.time_out;

@@ -401,7 +401,13 @@ fn run_race(driver: &Driver, opts: &RaceOptions) -> Result<(Vec<RaceEpisode>, Op
                 a
             }
         };
-        for s in run.step(&actions) {
+        // a single policy's agent that has run its episodes stops; a meta
+        // controller's keep walking (their IQR and switches are logged)
+        let active: Option<Vec<bool>> = match driver {
+            Driver::Single(_) => Some(done.iter().map(|d| d.len() < opts.episodes).collect()),
+            Driver::Meta { .. } => None,
+        };
+        for s in run.step_active(&actions, active.as_deref()) {
             let d = &mut done[s.env_index];
             if d.len() < opts.episodes {
                 d.push(RaceEpisode {

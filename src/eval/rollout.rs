@@ -123,10 +123,20 @@ impl ScenarioRun {
 
     /// One policy step of every robot; returns the episodes that ended.
     pub fn step(&mut self, actions: &[f32]) -> Vec<EpisodeSummary> {
-        for (h, e) in self.hooks.iter_mut().zip(self.venv.envs_mut()) {
-            h.before_step(e);
+        self.step_active(actions, None)
+    }
+
+    /// One policy step of the robots whose `active` entry is true (every robot with
+    /// `None`); the others stand still ([`VecEnv::step_active`]). A robot's numbers
+    /// depend on its own seed alone, so leaving out robots whose episodes are no
+    /// longer counted changes nothing but the time.
+    pub fn step_active(&mut self, actions: &[f32], active: Option<&[bool]>) -> Vec<EpisodeSummary> {
+        for (i, (h, e)) in self.hooks.iter_mut().zip(self.venv.envs_mut()).enumerate() {
+            if active.is_none_or(|m| m[i]) {
+                h.before_step(e);
+            }
         }
-        let b = self.venv.step(actions);
+        let b = self.venv.step_active(actions, active);
         self.obs.copy_from_slice(&b.obs);
         self.dones.copy_from_slice(&b.dones);
         for ((h, e), &d) in self
@@ -205,7 +215,9 @@ pub fn run_first_episodes(
             *c += cmd[0].hypot(cmd[1]) * dt;
         }
         let actions = policy.actions(run.obs())?;
-        for s in run.step(&actions) {
+        // robots whose first episode has ended stand still from here on
+        let active: Vec<bool> = first.iter().map(Option::is_none).collect();
+        for s in run.step_active(&actions, Some(&active)) {
             let i = s.env_index;
             if first[i].is_none() {
                 first[i] = Some(FirstEpisode {

@@ -237,7 +237,8 @@ pub fn evaluate_tracking_with_falls(
         };
         // Score the command each robot followed during this step.
         let commands: Vec<[f64; 3]> = envs.envs().iter().map(|e| e.command()).collect();
-        let b = envs.step(&actions);
+        // a robot whose first episode has ended stands still from here on
+        let b = envs.step_active(&actions, Some(&alive));
         obs.copy_from_slice(&b.obs);
         let done = b.dones.clone();
         for (i, env) in envs.envs().iter().enumerate() {
