@@ -196,15 +196,16 @@ pub fn evaluate_ttf(
         )?;
         Ok((first, setup.env.max_episode_steps()))
     })?;
+    let (firsts, episode_steps): (Vec<Vec<FirstEpisode>>, Vec<usize>) =
+        rollouts.into_iter().unzip();
     let mut cells = Vec::new();
-    for (cell_jobs, cell_rollouts) in jobs
+    for ((cell_jobs, per_seed), steps) in jobs
         .chunks(opts.seeds.len())
-        .zip(rollouts.chunks(opts.seeds.len()))
+        .zip(firsts.chunks(opts.seeds.len()))
+        .zip(episode_steps.chunks(opts.seeds.len()))
     {
         let (spec, p, _) = cell_jobs[0];
-        let episode_steps = cell_rollouts.last().map_or(0, |r| r.1);
-        let per_seed: Vec<Vec<FirstEpisode>> = cell_rollouts.iter().map(|r| r.0.clone()).collect();
-        let cell = ttf_cell(&spec, &p.name, &per_seed, episode_steps);
+        let cell = ttf_cell(&spec, &p.name, per_seed, steps[steps.len() - 1]);
         progress(&cell);
         cells.push(cell);
     }

@@ -3,15 +3,13 @@
 //! each higher rung runs the benchmarks again with that rung's perturbations,
 //! on as many robots as `[curves]` gives.
 
-use std::time::Instant;
-
 use anyhow::Result;
 
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
 use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
-use super::{load_runs, seeds};
+use super::{load_runs, seeds, PhaseClock};
 use crate::eval::{
     evaluate_race, MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport,
     TtfOptions, TtfReport,
@@ -67,42 +65,36 @@ fn points_at(
     out
 }
 
-/// Minutes since `t`.
-fn min_since(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() / 60.0
-}
-
-/// One rung above 0: the tables' evaluations with the rung's perturbations (and
-/// the minutes each benchmark took, added to `phases`).
+/// One rung above 0: the tables' evaluations with the rung's perturbations (each
+/// benchmark's minutes listed on `clock`).
 fn evaluate_rung(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     severity: usize,
     tables: &TableRuns,
-    phases: &mut Vec<(String, f64)>,
+    clock: &mut PhaseClock,
 ) -> Result<Vec<CurvePoint>> {
     let ladder = c.ladder()?;
     let rung = ladder.rung(severity)?;
-    let t = Instant::now();
-    let ttf = if tables.ttf.1.is_empty() {
-        None
-    } else {
+    let what = |benchmark: &str| format!("curves, rung {severity}, {benchmark}");
+    let ttf = clock.time(what("time to fall"), || -> Result<_> {
+        if tables.ttf.1.is_empty() {
+            return Ok(None);
+        }
         let opts = TtfOptions {
             seeds: seeds(spec.ttf.first_seed, c.ttf_seeds),
             repeats: c.ttf_repeats,
             params: rung.apply(&tables.ttf.0.params),
             ..tables.ttf.0.clone()
         };
-        Some(evaluate_ttf_runs(spec, &tables.ttf.1, &opts, |_| {})?.0)
-    };
-    phases.push((
-        format!("curves, rung {severity}, time to fall"),
-        min_since(t),
-    ));
-    let t = Instant::now();
-    let platform = if tables.platform.1.is_empty() {
-        None
-    } else {
+        Ok(Some(
+            evaluate_ttf_runs(spec, &tables.ttf.1, &opts, |_| {})?.0,
+        ))
+    })?;
+    let platform = clock.time(what("platform"), || -> Result<_> {
+        if tables.platform.1.is_empty() {
+            return Ok(None);
+        }
         let opts = PlatformOptions {
             heights_m: rung.platform_heights_m.clone(),
             seeds: seeds(spec.platform.first_seed, c.platform_seeds),
@@ -110,13 +102,14 @@ fn evaluate_rung(
             params: rung.apply(&tables.platform.0.params),
             ..tables.platform.0.clone()
         };
-        Some(evaluate_platform_runs(spec, &tables.platform.1, &opts, |_| {})?.0)
-    };
-    phases.push((format!("curves, rung {severity}, platform"), min_since(t)));
-    let t = Instant::now();
-    let race = if tables.race.1.is_empty() {
-        None
-    } else {
+        Ok(Some(
+            evaluate_platform_runs(spec, &tables.platform.1, &opts, |_| {})?.0,
+        ))
+    })?;
+    let race = clock.time(what("race"), || -> Result<_> {
+        if tables.race.1.is_empty() {
+            return Ok(None);
+        }
         let opts = RaceOptions {
             agents: c.race_agents,
             episodes: c.race_episodes,
@@ -124,9 +117,8 @@ fn evaluate_rung(
             ..tables.race.0.clone()
         };
         let policies = load_runs(spec, &tables.race.1)?;
-        Some(evaluate_race(&policies, tables.metas, &opts, |_| {})?)
-    };
-    phases.push((format!("curves, rung {severity}, race"), min_since(t)));
+        Ok(Some(evaluate_race(&policies, tables.metas, &opts, |_| {})?))
+    })?;
     let reports = RungReports {
         ttf: ttf.as_ref(),
         platform: platform.as_ref(),
@@ -136,13 +128,13 @@ fn evaluate_rung(
 }
 
 /// Every rung of `c`: rung 0 from the tables' `reports`, the others evaluated
-/// (each benchmark's minutes added to `phases`).
+/// (each benchmark's minutes listed on `clock`).
 pub(super) fn evaluate_curves(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     reports: &RungReports,
     tables: &TableRuns,
-    phases: &mut Vec<(String, f64)>,
+    clock: &mut PhaseClock,
 ) -> Result<Vec<CurvePoint>> {
     let mut points = Vec::new();
     for &s in &c.severity {
@@ -150,7 +142,7 @@ pub(super) fn evaluate_curves(
         let at = if s == 0 {
             points_at(spec, 0, reports, tables)
         } else {
-            evaluate_rung(spec, c, s, tables, phases)?
+            evaluate_rung(spec, c, s, tables, clock)?
         };
         for p in &at {
             eprintln!(

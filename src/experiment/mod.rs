@@ -896,10 +896,23 @@ impl PhaseClock {
         eprintln!(
             "[eval {k}/{}] {what} ({:.1} min so far)",
             self.stages,
-            self.start.elapsed().as_secs_f64() / 60.0
+            self.total_min()
         );
         self.current = Some((what.to_string(), Instant::now()));
         self.started += 1;
+    }
+
+    /// Runs `f` inside the current stage and lists its minutes as `what`.
+    fn time<R>(&mut self, what: String, f: impl FnOnce() -> R) -> R {
+        let t = Instant::now();
+        let out = f();
+        self.phases.push((what, t.elapsed().as_secs_f64() / 60.0));
+        out
+    }
+
+    /// Minutes since the evaluation started.
+    fn total_min(&self) -> f64 {
+        self.start.elapsed().as_secs_f64() / 60.0
     }
 
     fn end_current(&mut self) {
@@ -917,7 +930,8 @@ impl PhaseClock {
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
 pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
     let threads = crate::config::worker_threads(spec.threads);
-    let start = Instant::now();
+    let stages = if spec.curves.is_some() { 6 } else { 5 };
+    let mut clock = PhaseClock::new(stages);
     let runs = runs_to_evaluate(spec, opts)?;
     let available = runs_with_checkpoints(spec, &runs)?;
     let have = |labels: &[String]| -> Vec<String> {
@@ -925,8 +939,6 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         out.retain(|l| available.contains(l));
         out
     };
-    let stages = if spec.curves.is_some() { 6 } else { 5 };
-    let mut clock = PhaseClock::new(stages);
     if spec.selection.is_some() {
         eprintln!("[eval 0/{stages}] choosing each finished run's final policy ([selection])");
         choose_final_policies(spec, threads)?;
@@ -1004,9 +1016,9 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             race: (&race_opts, race_labels),
             metas: &metas,
         };
-        curves = ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock.phases)?;
+        curves = ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock)?;
     }
-    let wall_s = start.elapsed().as_secs_f64();
+    let wall_s = clock.total_min() * 60.0;
     let phases = clock.finish();
     let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
     results.phase_min = phases;
