@@ -106,3 +106,27 @@ fn tempfile_dir(test: &str) -> std::path::PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+#[test]
+fn cutting_the_same_actor_twice_leaves_the_file_alone() {
+    let dir = tempfile_dir("actor-only-twice");
+    let copy = dir.join("actor.safetensors");
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE);
+    rall::runner::policy_file::save_actor_only(&src, &copy).unwrap();
+    let first = std::fs::read(&copy).unwrap();
+    // several tries: a rewrite would order the metadata afresh each time
+    for _ in 0..4 {
+        rall::runner::policy_file::save_actor_only(&src, &copy).unwrap();
+        assert!(
+            std::fs::read(&copy).unwrap() == first,
+            "the copy was rewritten"
+        );
+    }
+    // a different source does replace it
+    let other =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("policies/paper/baseline-s2/latest.safetensors");
+    rall::runner::policy_file::save_actor_only(&other, &copy).unwrap();
+    let b = rall::runner::load_policy(&copy).unwrap();
+    assert_eq!(b.config.runner.seed, 2);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -62,7 +62,7 @@ pub mod storage;
 pub use actor_critic::ActorCritic;
 pub use checkpoint::{
     decode_checkpoint, load_checkpoint, parse_checkpoint, read_checkpoint, save_checkpoint,
-    save_checkpoint_with, Checkpoint,
+    save_checkpoint_with, Checkpoint, CHECKSUM_PREFIX,
 };
 pub use collective::{Collective, SingleProcess};
 pub use critic::{register, Critic, CriticKind, CriticSpec};

@@ -1,7 +1,7 @@
 //! Checkpoint files of a run: learner state + runner state + metadata
 //! (config, observation layout, version). Written atomically by `learn::checkpoint`.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
@@ -12,7 +12,7 @@ use crate::env::observation::layout_string;
 use crate::env::{ACT_DIM, OBS_DIM};
 use crate::learn::{
     decode_checkpoint, read_checkpoint, save_checkpoint_with, Checkpoint, LatentSource, Learner,
-    ObsLayout,
+    NamedTensor, ObsLayout, CHECKSUM_PREFIX,
 };
 
 /// Bumped when the file layout changes incompatibly.
@@ -126,10 +126,33 @@ pub fn save_actor_only(src: &Path, path: &Path) -> Result<()> {
     let tensors: Vec<_> = ckpt.tensors.into_iter().filter(|t| acts(&t.name)).collect();
     let mut meta = ckpt.metadata;
     meta.insert("contents".into(), ACTOR_ONLY.into());
+    if holds_already(path, &tensors, &meta) {
+        return Ok(());
+    }
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     save_checkpoint_with(path, &tensors, &[], &meta)
+}
+
+/// Whether `path` already holds exactly `tensors` and `meta` (checksums aside).
+/// The file format keeps metadata in no fixed order, so writing the same
+/// checkpoint twice gives different bytes; leaving an unchanged file alone keeps
+/// re-shipping a finished run from rewriting its files.
+fn holds_already(path: &Path, tensors: &[NamedTensor], meta: &HashMap<String, String>) -> bool {
+    let Ok(old) = read_checkpoint(path) else {
+        return false;
+    };
+    let entries = |m: &HashMap<String, String>| -> BTreeMap<String, String> {
+        m.iter()
+            .filter(|(k, _)| !k.starts_with(CHECKSUM_PREFIX))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect()
+    };
+    old.verified
+        && old.blobs.is_empty()
+        && old.tensors == tensors
+        && entries(&old.metadata) == entries(meta)
 }
 
 fn meta_value<'a>(meta: &'a HashMap<String, String>, key: &str, path: &Path) -> Result<&'a str> {
