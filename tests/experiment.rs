@@ -22,6 +22,15 @@ fn write_config(dir: &Path, name: &str, critic: CriticKind, eta: Option<f32>) ->
     path.display().to_string()
 }
 
+/// The slice's hand-written preface (written on first use).
+fn preface(dir: &Path) -> std::path::PathBuf {
+    let p = dir.join("answer.md");
+    if !p.exists() {
+        std::fs::write(&p, "At this budget the slice answers nothing.\n").unwrap();
+    }
+    p
+}
+
 fn spec_text(dir: &Path, results: &str) -> String {
     let base = write_config(dir, "baseline", CriticKind::Scalar, None);
     let eta1 = write_config(dir, "eta1", CriticKind::Iqn, Some(1.0));
@@ -36,6 +45,7 @@ fn spec_text(dir: &Path, results: &str) -> String {
     format!(
         r#"
 name = "slice"
+preface = "{preface}"
 runs_dir = "{runs}"
 results_dir = "{results}"
 shipped_dir = "{shipped}"
@@ -112,12 +122,16 @@ min_safe_steps = 5
 [bootstrap]
 resamples = 50
 
+[contrasts]
+pairs = [["RALL", "Baseline"], ["Meta", "RALL"]]
+
 [[paper.ttf]]
 load = "ball"
 method = "Baseline"
 ttf = [0.539, 0.212, 0.292, 0.189]
 "#,
         runs = dir.join("runs").display(),
+        preface = preface(dir).display(),
         results = dir.join(results).display(),
         shipped = dir.join("shipped").display(),
     )
@@ -169,6 +183,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "ttf_by_method.csv",
         "platform_by_method.csv",
         "race_by_method.csv",
+        "contrasts.csv",
         "results.json",
     ] {
         let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
@@ -193,11 +208,101 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         files
     };
     let drawn_by_the_evaluation = read_all();
-    let redrawn = ExperimentResults::redraw_figures(&dir.path().join("results-a")).unwrap();
-    assert_eq!(redrawn.len(), drawn_by_the_evaluation.len());
+    let readme = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
+    let preface_text = std::fs::read_to_string(preface(dir.path())).unwrap();
+    let redrawn =
+        ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text)).unwrap();
+    assert!(redrawn.len() > drawn_by_the_evaluation.len());
     assert!(
         read_all() == drawn_by_the_evaluation,
         "figures redrawn from results.json differ from the evaluation's"
+    );
+    assert_eq!(
+        std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap(),
+        readme,
+        "the README written again from results.json differs from the evaluation's"
+    );
+    // a preface edited after the evaluation: the README takes it, nothing else changes
+    let json = std::fs::read(dir.path().join("results-a/results.json")).unwrap();
+    ExperimentResults::redraw(&dir.path().join("results-a"), Some("Edited.\n".into())).unwrap();
+    let edited = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
+    assert!(
+        edited.starts_with("# Results: slice\n\nEdited.\n"),
+        "{edited}"
+    );
+    assert!(!edited.contains("answers nothing"));
+    assert_eq!(
+        std::fs::read(dir.path().join("results-a/results.json")).unwrap(),
+        json
+    );
+    let preface_text = std::fs::read_to_string(preface(dir.path())).unwrap();
+    ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text)).unwrap();
+    // method against method: every benchmark both ran, at rung 0 (no ladder here)
+    assert!(
+        readme.contains("At this budget the slice answers nothing."),
+        "{readme}"
+    );
+    assert!(readme.contains("**RALL against Baseline.**"), "{readme}");
+    let contrasts = std::fs::read_to_string(dir.path().join("results-a/contrasts.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = contrasts
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    let metrics = |a: &str, b: &str| -> Vec<String> {
+        rows.iter()
+            .filter(|r| r[0] == a && r[1] == b)
+            .map(|r| r[3].to_string())
+            .collect()
+    };
+    assert_eq!(
+        metrics("RALL", "Baseline"),
+        ["ttf", "strict_ttf", "success_pct", "return_q25"],
+        "{contrasts}"
+    );
+    // the meta controller ran the race alone
+    assert_eq!(metrics("Meta", "RALL"), ["return_q25"], "{contrasts}");
+    for r in &rows {
+        let [d, rlo, rhi, slo, shi]: [f64; 5] = std::array::from_fn(|k| r[5 + k].parse().unwrap());
+        assert!(rlo <= d && d <= rhi && slo <= shi, "{r:?}");
+        // RALL's two seeds against Baseline's one: two seed pairs
+        let seeds =
+            |k: usize| -> Vec<f64> { r[k].split(';').map(|x| x.parse().unwrap()).collect() };
+        if r[0] == "RALL" {
+            assert_eq!(
+                (seeds(10).len(), seeds(11).len(), r[13]),
+                (2, 1, "2"),
+                "{r:?}"
+            );
+        }
+        // on TTF and platform every seed has as many cells: the difference is that
+        // of the seeds' means
+        if r[3] != "return_q25" {
+            let m = |v: Vec<f64>| v.iter().sum::<f64>() / v.len() as f64;
+            assert!((d - (m(seeds(10)) - m(seeds(11)))).abs() < 2e-3, "{r:?}");
+        }
+    }
+    // ... and the seeds' TTF is the by-method table's over its cells
+    let by_method_ttf =
+        std::fs::read_to_string(dir.path().join("results-a/ttf_by_method.csv")).unwrap();
+    let rall_cells: Vec<f64> = by_method_ttf
+        .lines()
+        .filter(|l| l.starts_with("RALL,"))
+        .map(|l| l.split(',').nth(5).unwrap().parse().unwrap())
+        .collect();
+    let ttf_row = rows
+        .iter()
+        .find(|r| r[0] == "RALL" && r[3] == "ttf")
+        .unwrap();
+    let seeds_mean: f64 = ttf_row[10]
+        .split(';')
+        .map(|x| x.parse::<f64>().unwrap())
+        .sum::<f64>()
+        / 2.0;
+    let cells_mean = rall_cells.iter().sum::<f64>() / rall_cells.len() as f64;
+    assert!(
+        (seeds_mean - cells_mean).abs() < 2e-3,
+        "{seeds_mean} {cells_mean}"
     );
     let md = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
     assert!(
@@ -386,6 +491,40 @@ fn an_experiment_file_naming_an_unknown_method_is_refused() {
     );
     let e = refusal(dir.path(), &text);
     assert!(e.contains("race.methods") && e.contains("Baselin"), "{e}");
+}
+
+#[test]
+fn a_contrast_of_an_unknown_or_the_same_method_and_a_missing_preface_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = spec_text(dir.path(), "r");
+    let pairs = "pairs = [[\"RALL\", \"Baseline\"], [\"Meta\", \"RALL\"]]";
+    assert!(good.contains(pairs));
+    let e = refusal(
+        dir.path(),
+        &good.replace(pairs, "pairs = [[\"RALL\", \"DR\"]]"),
+    );
+    assert!(e.contains("contrasts.pairs") && e.contains("\"DR\""), "{e}");
+    // two seeds of one method, and two meta controllers over the same pair of methods
+    for same in [["RALL", "RALL seed 2"], ["Meta", "Meta seed 2"]] {
+        let text = good.replace(
+            pairs,
+            &format!("pairs = [[\"{}\", \"{}\"]]", same[0], same[1]),
+        );
+        let e = refusal(dir.path(), &text);
+        assert!(e.contains("same method"), "{e}");
+    }
+    let e = refusal(dir.path(), &good.replace(pairs, "pairs = []"));
+    assert!(e.contains("contrasts.pairs lists no pair"), "{e}");
+    let missing = dir.path().join("no-such-answer.md");
+    let text = good.replace(
+        &preface(dir.path()).display().to_string(),
+        &missing.display().to_string(),
+    );
+    let e = refusal(dir.path(), &text);
+    assert!(
+        e.contains("preface") && e.contains("no-such-answer.md"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -30,8 +30,9 @@ pub struct ExperimentArgs {
     /// `shipped_dir` (to commit them) and exit.
     #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only"])]
     pub ship: bool,
-    /// Draw the figures of the file's results_dir again from its results.json with
-    /// the current figure code (nothing is evaluated) and exit.
+    /// Write the README (with the file's current `preface`), the CSV tables and the
+    /// figures of the file's results_dir again from its results.json with the
+    /// current code (nothing is evaluated) and exit.
     #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only", "ship"])]
     pub redraw: bool,
     /// With --train-only: train only the run with this label (repeat it), so that
@@ -72,7 +73,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         return ship_all(&spec, &args.file);
     }
     if args.redraw {
-        for f in ExperimentResults::redraw_figures(&spec.results_dir)? {
+        for f in ExperimentResults::redraw(&spec.results_dir, spec.preface_text()?)? {
             println!("{}", f.display());
         }
         return Ok(());

@@ -88,8 +88,58 @@ impl Default for Resampling {
 }
 
 /// Mean over strata of each stratum's mean.
-fn mean_of_means(strata: &[Vec<f64>]) -> f64 {
+pub(super) fn mean_of_means(strata: &[Vec<f64>]) -> f64 {
     mean(&strata.iter().map(|s| mean(s)).collect::<Vec<_>>())
+}
+
+/// The robots' survived fractions of the runs `policies` in every cell of
+/// `report`, a stratum per run and cell; `strict` takes the strict fall definition.
+pub(super) fn ttf_strata(report: &TtfReport, policies: &[String], strict: bool) -> Vec<Vec<f64>> {
+    report
+        .cells
+        .iter()
+        .filter(|c| policies.contains(&c.policy))
+        .map(|c| {
+            let steps = if strict {
+                &c.strict_steps_per_robot
+            } else {
+                &c.steps_per_robot
+            };
+            let full = c.episode_steps.max(1) as f64;
+            steps.iter().map(|&s| s as f64 / full).collect()
+        })
+        .collect()
+}
+
+/// The robots' platform successes (0 or 100) of the runs `policies`, a stratum
+/// per run and height.
+pub(super) fn platform_strata(report: &PlatformReport, policies: &[String]) -> Vec<Vec<f64>> {
+    report
+        .cells
+        .iter()
+        .filter(|c| policies.contains(&c.policy))
+        .map(|c| {
+            c.success_per_robot
+                .iter()
+                .map(|&s| if s { 100.0 } else { 0.0 })
+                .collect()
+        })
+        .collect()
+}
+
+/// The race returns of the rows `policies`, a stratum per row.
+pub(super) fn race_strata(report: &RaceReport, policies: &[String]) -> Vec<Vec<f64>> {
+    report
+        .rows
+        .iter()
+        .filter(|row| policies.contains(&row.name))
+        .map(|row| row.returns.clone())
+        .collect()
+}
+
+/// The 0.25 quantile of every stratum's values pooled.
+pub(super) fn q25_pooled(strata: &[Vec<f64>]) -> f64 {
+    quantile(&strata.concat(), 0.25)
 }
 
 /// TTF of the runs `policies` (a method's seeds, pooled as `label`) over every
@@ -103,20 +153,7 @@ pub fn ttf_point(
     strict: bool,
     r: Resampling,
 ) -> Option<CurvePoint> {
-    let strata: Vec<Vec<f64>> = report
-        .cells
-        .iter()
-        .filter(|c| policies.contains(&c.policy))
-        .map(|c| {
-            let steps = if strict {
-                &c.strict_steps_per_robot
-            } else {
-                &c.steps_per_robot
-            };
-            let full = c.episode_steps.max(1) as f64;
-            steps.iter().map(|&s| s as f64 / full).collect()
-        })
-        .collect();
+    let strata = ttf_strata(report, policies, strict);
     let metric = if strict { "strict_ttf" } else { "ttf" };
     point(("ttf", metric), label, severity, &strata, mean_of_means, r)
 }
@@ -160,17 +197,7 @@ pub fn platform_point(
     severity: usize,
     r: Resampling,
 ) -> Option<CurvePoint> {
-    let strata: Vec<Vec<f64>> = report
-        .cells
-        .iter()
-        .filter(|c| policies.contains(&c.policy))
-        .map(|c| {
-            c.success_per_robot
-                .iter()
-                .map(|&s| if s { 100.0 } else { 0.0 })
-                .collect()
-        })
-        .collect();
+    let strata = platform_strata(report, policies);
     point(
         ("platform", "success_pct"),
         label,
@@ -190,13 +217,7 @@ pub fn race_point(
     severity: usize,
     r: Resampling,
 ) -> Option<CurvePoint> {
-    let strata: Vec<Vec<f64>> = report
-        .rows
-        .iter()
-        .filter(|row| policies.contains(&row.name))
-        .map(|row| row.returns.clone())
-        .collect();
-    let q25_pooled = |s: &[Vec<f64>]| quantile(&s.concat(), 0.25);
+    let strata = race_strata(report, policies);
     point(
         ("race", "return_q25"),
         label,

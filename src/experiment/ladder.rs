@@ -5,6 +5,7 @@
 
 use anyhow::Result;
 
+use super::contrasts::{contrasts_at, Contrast};
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
 use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
@@ -30,6 +31,41 @@ pub(super) struct TableRuns<'a> {
     pub metas: &'a [MetaConfig],
 }
 
+/// The experiment's bootstrap settings.
+fn resampling(spec: &ExperimentSpec) -> Resampling {
+    let b = &spec.bootstrap;
+    Resampling {
+        resamples: b.resamples,
+        level: b.level,
+        seed: b.seed,
+    }
+}
+
+/// The race's evaluated runs and meta controllers.
+fn race_names(labels: &TableRuns) -> Vec<String> {
+    let mut names = labels.race.1.clone();
+    names.extend(labels.metas.iter().map(|m| m.name.clone()));
+    names
+}
+
+/// Every `[contrasts]` pair at rung `severity` from `reports`.
+pub(super) fn rung_contrasts(
+    spec: &ExperimentSpec,
+    severity: usize,
+    reports: &RungReports,
+    labels: &TableRuns,
+) -> Vec<Contrast> {
+    let race = race_names(labels);
+    contrasts_at(
+        spec,
+        severity,
+        reports.ttf.map(|r| (r, labels.ttf.1.as_slice())),
+        reports.platform.map(|r| (r, labels.platform.1.as_slice())),
+        reports.race.map(|r| (r, race.as_slice())),
+        resampling(spec),
+    )
+}
+
 /// Every method's points at rung `severity` from `reports`.
 fn points_at(
     spec: &ExperimentSpec,
@@ -37,12 +73,7 @@ fn points_at(
     reports: &RungReports,
     labels: &TableRuns,
 ) -> Vec<CurvePoint> {
-    let b = &spec.bootstrap;
-    let r = Resampling {
-        resamples: b.resamples,
-        level: b.level,
-        seed: b.seed,
-    };
+    let r = resampling(spec);
     let mut out = Vec::new();
     if let Some(rep) = reports.ttf {
         for m in methods_of(spec, &labels.ttf.1) {
@@ -56,9 +87,7 @@ fn points_at(
         }
     }
     if let Some(rep) = reports.race {
-        let mut names = labels.race.1.clone();
-        names.extend(labels.metas.iter().map(|m| m.name.clone()));
-        for m in methods_of(spec, &names) {
+        for m in methods_of(spec, &race_names(labels)) {
             out.extend(race_point(rep, &m.seeds, &m.label, severity, r));
         }
     }
@@ -66,14 +95,14 @@ fn points_at(
 }
 
 /// One rung above 0: the tables' evaluations with the rung's perturbations (each
-/// benchmark's minutes listed on `clock`).
+/// benchmark's minutes listed on `clock`): its points and contrasts.
 fn evaluate_rung(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     severity: usize,
     tables: &TableRuns,
     clock: &mut PhaseClock,
-) -> Result<Vec<CurvePoint>> {
+) -> Result<(Vec<CurvePoint>, Vec<Contrast>)> {
     let ladder = c.ladder()?;
     let rung = ladder.rung(severity)?;
     let what = |benchmark: &str| format!("curves, rung {severity}, {benchmark}");
@@ -124,26 +153,34 @@ fn evaluate_rung(
         platform: platform.as_ref(),
         race: race.as_ref(),
     };
-    Ok(points_at(spec, severity, &reports, tables))
+    Ok((
+        points_at(spec, severity, &reports, tables),
+        rung_contrasts(spec, severity, &reports, tables),
+    ))
 }
 
 /// Every rung of `c`: rung 0 from the tables' `reports`, the others evaluated
-/// (each benchmark's minutes listed on `clock`).
+/// (each benchmark's minutes listed on `clock`); the points and the contrasts.
 pub(super) fn evaluate_curves(
     spec: &ExperimentSpec,
     c: &CurvesSpec,
     reports: &RungReports,
     tables: &TableRuns,
     clock: &mut PhaseClock,
-) -> Result<Vec<CurvePoint>> {
+) -> Result<(Vec<CurvePoint>, Vec<Contrast>)> {
     let mut points = Vec::new();
+    let mut contrasts = Vec::new();
     for &s in &c.severity {
         eprintln!("  severity rung {s}");
-        let at = if s == 0 {
-            points_at(spec, 0, reports, tables)
+        let (at, differences) = if s == 0 {
+            (
+                points_at(spec, 0, reports, tables),
+                rung_contrasts(spec, 0, reports, tables),
+            )
         } else {
             evaluate_rung(spec, c, s, tables, clock)?
         };
+        contrasts.extend(differences);
         for p in &at {
             eprintln!(
                 "    {:<8} {:<11} {:<22} {}",
@@ -155,5 +192,5 @@ pub(super) fn evaluate_curves(
         }
         points.extend(at);
     }
-    Ok(points)
+    Ok((points, contrasts))
 }

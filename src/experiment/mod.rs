@@ -4,6 +4,7 @@
 //! drops, race track with the IQR meta controller) and writes tables beside the
 //! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
 
+pub mod contrasts;
 pub mod curve_plots;
 pub mod curves;
 pub mod kcheck;
@@ -1002,27 +1003,34 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             )
         })?)
     };
-    let mut curves = Vec::new();
-    if let Some(c) = &spec.curves {
-        clock.next("robustness curves over the severity ladder");
-        let reports = ladder::RungReports {
-            ttf: ttf.as_ref(),
-            platform: platform.as_ref(),
-            race: race.as_ref(),
-        };
-        let tables = ladder::TableRuns {
-            ttf: (&ttf_opts, ttf_methods),
-            platform: (&platform_opts, platform_methods),
-            race: (&race_opts, race_labels),
-            metas: &metas,
-        };
-        curves = ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock)?;
-    }
+    let reports = ladder::RungReports {
+        ttf: ttf.as_ref(),
+        platform: platform.as_ref(),
+        race: race.as_ref(),
+    };
+    let tables = ladder::TableRuns {
+        ttf: (&ttf_opts, ttf_methods),
+        platform: (&platform_opts, platform_methods),
+        race: (&race_opts, race_labels),
+        metas: &metas,
+    };
+    let (curves, contrasts) = match &spec.curves {
+        Some(c) => {
+            clock.next("robustness curves over the severity ladder");
+            ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock)?
+        }
+        None => (
+            Vec::new(),
+            ladder::rung_contrasts(spec, 0, &reports, &tables),
+        ),
+    };
     let wall_s = clock.total_min() * 60.0;
     let phases = clock.finish();
     let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
     results.phase_min = phases;
     results.set_curves(spec, curves)?;
+    results.contrasts = contrasts;
+    results.preface = spec.preface_text()?;
     results.checkpoint_spread = spread;
     if let Some(rs) = &spec.risk_signal {
         results.risk_signal = risk_signal::risk_rows(spec, rs)?;

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
+use super::contrasts::{contrasts_csv, contrasts_markdown, Contrast};
 use super::curves::{curve_csv, curve_markdown, CurvePoint};
 use super::kcheck::CheckpointSpread;
 use super::pooled::{show_with_seeds, MethodTables};
@@ -173,6 +174,13 @@ pub struct ExperimentResults {
     /// With `[risk_signal]`: each run's risk terms over its last training iterations.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub risk_signal: Vec<super::risk_signal::RiskTermRow>,
+    /// With `[contrasts]`: each pair of methods on every benchmark and rung.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub contrasts: Vec<Contrast>,
+    /// The experiment's `preface` file, opening the README (read from the file
+    /// each time the README is written, never stored in `results.json`).
+    #[serde(skip)]
+    pub preface: Option<String>,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
     pub evaluation_wall_clock_min: f64,
@@ -227,6 +235,8 @@ impl ExperimentResults {
             curve_paper: Vec::new(),
             checkpoint_spread: Vec::new(),
             risk_signal: Vec::new(),
+            contrasts: Vec::new(),
+            preface: None,
             evaluation_wall_clock_min: eval_wall_s / 60.0,
             phase_min: Vec::new(),
         }
@@ -335,11 +345,15 @@ impl ExperimentResults {
     pub fn markdown(&self) -> String {
         let mut s = String::new();
         let _ = writeln!(s, "# Results: {}\n", self.name);
+        if let Some(p) = &self.preface {
+            let _ = writeln!(s, "{}\n", p.trim_end());
+        }
         let _ = writeln!(
             s,
             "Every number: ours with its {} in brackets; the paper's beside it where it gives one.\n",
             self.confidence
         );
+        contrasts_markdown(&self.contrasts, &mut s);
         self.runs_markdown(&mut s);
         self.common_ground_markdown(&mut s);
 
@@ -593,6 +607,9 @@ impl ExperimentResults {
         if !self.curves.is_empty() {
             files.push(("curves.csv", curve_csv(&self.curves)));
         }
+        if !self.contrasts.is_empty() {
+            files.push(("contrasts.csv", contrasts_csv(&self.contrasts)));
+        }
         if !self.checkpoint_spread.is_empty() {
             files.push(("checkpoints.csv", self.checkpoints_csv()));
         }
@@ -805,11 +822,12 @@ impl ExperimentResults {
         Ok(())
     }
 
-    /// Draws the figures of the results already written in `dir` (its
-    /// `results.json`) again with the current figure code, without evaluating
-    /// anything: the figures are drawn into a staging folder, then renamed over
-    /// the old ones. Nothing else in `dir` changes.
-    pub fn redraw_figures(dir: &Path) -> Result<Vec<PathBuf>> {
+    /// Writes the README, the CSV tables and the figures of the results already in
+    /// `dir` again from its `results.json` with the current code, `preface` opening
+    /// the README, without evaluating anything: they are written into a staging
+    /// folder, then renamed over the old ones. `results.json` and
+    /// `evaluation_time.txt` stay as they are. Returns the files written.
+    pub fn redraw(dir: &Path, preface: Option<String>) -> Result<Vec<PathBuf>> {
         let json = dir.join("results.json");
         let text = std::fs::read_to_string(&json).with_context(|| {
             format!(
@@ -817,13 +835,15 @@ impl ExperimentResults {
                 json.display()
             )
         })?;
-        let results: ExperimentResults = serde_json::from_str(&text)
+        let mut results: ExperimentResults = serde_json::from_str(&text)
             .with_context(|| format!("{} is not a results file of this version", json.display()))?;
+        results.preface = preface;
         let staging = fresh_staging(dir)?;
         std::fs::create_dir_all(staging.join("figures"))
             .with_context(|| format!("creating {}", staging.display()))?;
+        results.write_tables(&staging)?;
         super::plots::write_all(&results, &staging.join("figures"))?;
-        move_staged(&staging, dir, &["figures"])
+        move_staged(&staging, dir, &["", "figures"])
     }
 
     /// The whole evaluation's minutes, then each phase's.
@@ -835,9 +855,8 @@ impl ExperimentResults {
         text
     }
 
-    fn write_into(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir.join("figures"))
-            .with_context(|| format!("creating {}", dir.display()))?;
+    /// README.md and the CSV tables into `dir`.
+    fn write_tables(&self, dir: &Path) -> Result<()> {
         let write = |name: &str, text: &str| -> Result<()> {
             let path = dir.join(name);
             std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
@@ -846,6 +865,17 @@ impl ExperimentResults {
         for (name, text) in self.csv_files() {
             write(name, &text)?;
         }
+        Ok(())
+    }
+
+    fn write_into(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir.join("figures"))
+            .with_context(|| format!("creating {}", dir.display()))?;
+        let write = |name: &str, text: &str| -> Result<()> {
+            let path = dir.join(name);
+            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
+        };
+        self.write_tables(dir)?;
         write("results.json", &serde_json::to_string_pretty(self)?)?;
         write("evaluation_time.txt", &self.evaluation_time())?;
         super::plots::write_all(self, &dir.join("figures"))

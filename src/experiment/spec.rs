@@ -49,6 +49,13 @@ pub struct ExperimentSpec {
     /// What each run's risk penalties marked in training (`[risk_signal]`); absent: not reported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub risk_signal: Option<super::risk_signal::RiskSignalSpec>,
+    /// Pairs of methods compared rung by rung (`[contrasts]`); absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contrasts: Option<super::contrasts::ContrastsSpec>,
+    /// A markdown file written by hand that opens the results' README (what the
+    /// numbers below answer); `--redraw` takes its current text.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preface: Option<PathBuf>,
 }
 
 /// A run's headline: its last `last` checkpoints, `every` iterations apart.
@@ -408,6 +415,10 @@ impl ExperimentSpec {
         if let Some(sel) = &self.selection {
             sel.validate(self.tracking.seed)?;
         }
+        if let Some(c) = &self.contrasts {
+            c.validate(self)?;
+        }
+        self.preface_text()?;
         if !(0.5..1.0).contains(&self.bootstrap.level) || self.bootstrap.resamples < 10 {
             bail!("bootstrap: level must be in [0.5, 1) and resamples at least 10");
         }
@@ -424,6 +435,17 @@ impl ExperimentSpec {
             bail!("race: agents and episodes must be at least 1");
         }
         Ok(())
+    }
+
+    /// The text of the `preface` file (`None` without one); an unreadable file is
+    /// refused, naming it.
+    pub fn preface_text(&self) -> Result<Option<String>> {
+        let Some(p) = &self.preface else {
+            return Ok(None);
+        };
+        let text = std::fs::read_to_string(p)
+            .with_context(|| format!("preface = {:?}: reading it", p.display()))?;
+        Ok(Some(text))
     }
 
     pub fn run(&self, label: &str) -> Option<&RunSpec> {
