@@ -653,6 +653,34 @@ fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_i
     run_experiment(&spec, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
     let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
     assert_eq!(md.matches(", policy of ").count(), 4, "{md}");
+    // a finished, chosen run ships `latest` as its actor alone (the evaluation, the
+    // meta controller's critic included, reads `selected`, shipped whole), read
+    // where it is: training restores and trains nothing
+    for r in &spec.runs {
+        let copy = spec.shipped_copy(r).unwrap();
+        let load = |f: &str| rall::runner::load_policy(&copy.join(f)).unwrap();
+        assert!(load("latest.safetensors").actor_only, "{}", r.label);
+        assert!(!load("selected.safetensors").actor_only, "{}", r.label);
+    }
+    train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
+    assert!(!dir.path().join("runs").exists());
+    // a larger budget for one of them is refused, saying why, instead of training
+    // it from nothing
+    let longer =
+        (spec_text(dir.path(), "results") + rule).replacen("iterations = 2", "iterations = 4", 1);
+    std::fs::write(&file, longer).unwrap();
+    let e = format!(
+        "{:#}",
+        train_all(
+            &ExperimentSpec::from_file(&file).unwrap(),
+            Arc::new(AtomicBool::new(false))
+        )
+        .unwrap_err()
+    );
+    assert!(
+        e.contains("Baseline") && e.contains("evaluation copy") && e.contains("4 iterations"),
+        "{e}"
+    );
     // another rule chooses anew, and cannot without the candidates
     let other = spec_text(dir.path(), "results") + &rule.replace("seed = 8", "seed = 9");
     std::fs::write(&file, other).unwrap();

@@ -30,7 +30,7 @@ use crate::eval::{
     evaluate_race, evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind,
     Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
 };
-use crate::runner::policy_file::save_actor_only;
+use crate::runner::policy_file::{is_actor_only, save_actor_only};
 use crate::runner::{install_teacher, train, PhaseOneOnly, Progress, RunDir, TrainSummary, LATEST};
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use spec::ExperimentSpec;
@@ -213,6 +213,11 @@ fn ship_files(run: &Path, dst: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Whether checkpoint `path` holds the actor alone (unreadable: no).
+fn holds_actor_only(path: &Path) -> bool {
+    crate::learn::read_checkpoint(path).is_ok_and(|c| is_actor_only(&c.metadata))
+}
+
 /// A run absent from `runs_dir` starts from its shipped checkpoint, if any.
 /// Returns whether it was restored.
 pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool> {
@@ -220,7 +225,11 @@ pub fn restore_shipped(spec: &ExperimentSpec, r: &spec::RunSpec) -> Result<bool>
         return Ok(false);
     };
     let dst = spec.run_dir(r);
-    if has_checkpoints(&RunDir { root: dst.clone() }) || !src.join(LATEST).exists() {
+    if has_checkpoints(&RunDir { root: dst.clone() })
+        || !src.join(LATEST).exists()
+        || holds_actor_only(&src.join(LATEST))
+    {
+        // a finished run shipped for evaluation is read where it is
         return Ok(false);
     }
     std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
@@ -248,7 +257,13 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             format!("run {:?}: the experiment file sets no shipped_dir", r.label)
         })?;
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
-        copy_atomic(&ckpt, &dst.join(LATEST))?;
+        if loaded.progress.iteration >= state.target && selected_in(spec, r, &state).is_some() {
+            // finished and its final policy chosen: evaluation reads `selected` (whole,
+            // critic included) and the headline checkpoints, never resumes it
+            save_actor_only(&ckpt, &dst.join(LATEST))?;
+        } else {
+            copy_atomic(&ckpt, &dst.join(LATEST))?;
+        }
         ship_files(&rd.root, &dst)?;
         // kept whether or not `[checkpoints]` is on yet, so that it can be turned on later
         let keep = spec.checkpoints.clone().unwrap_or(spec::CheckpointsSpec {
@@ -340,6 +355,20 @@ pub fn train_all(spec: &ExperimentSpec, stop: Arc<AtomicBool>) -> Result<()> {
         }
         let cfg = run_config(spec, r)?;
         let resume = state.progress.is_some();
+        if resume
+            && !has_checkpoints(&RunDir {
+                root: state.dir.clone(),
+            })
+        {
+            bail!(
+                "{head}: its budget is {} iterations, but it was shipped finished at {} as an \
+                 evaluation copy (actor only), which cannot be trained further: continue it where its \
+                 full training state is (the run directory it was trained in), or train it anew \
+                 under a new name",
+                state.target,
+                state.progress.as_ref().map_or(0, |p| p.iteration)
+            );
+        }
         match &state.progress {
             Some(p) => {
                 let per_it = p.wall_s / p.iteration.max(1) as f64;
