@@ -293,7 +293,7 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             .unwrap_or_default();
         let chosen = chosen + &teacher;
         let text = format!(
-            "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.{chosen}\n\nMade by `rall experiment {file}` (run `{name}`); `rall experiment {file}` resumes it from here.\n",
+            "# {label}\n\n`{config}`, seed {seed}: iteration {it} of {target}{unfinished}, {steps:.1} M env steps, {h:.2} h of training.{chosen}\n\nMade by `rall experiment {file}` (run `{name}`); {next}.\n",
             label = r.label,
             config = r.config.display(),
             seed = r.seed,
@@ -304,6 +304,11 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             h = p.wall_s / 3600.0,
             file = file.display(),
             name = spec.run_dir_name(r),
+            next = if p.iteration < state.target {
+                format!("`rall experiment {}` resumes it from here", file.display())
+            } else {
+                format!("`rall experiment {} --eval-only` evaluates it from here", file.display())
+            },
         );
         crate::fsio::write_atomic(&dst.join("README.md"), text.as_bytes())?;
         eprintln!(
