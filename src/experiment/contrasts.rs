@@ -139,54 +139,53 @@ pub fn contrasts_at(
     let Some(c) = &spec.contrasts else {
         return Vec::new();
     };
+    // every metric this rung has: its methods, a seed's strata and its statistic
+    let mut metrics: Vec<Metric> = Vec::new();
+    if let Some((rep, labels)) = ttf {
+        for (metric, strict) in [("ttf", false), ("strict_ttf", true)] {
+            metrics.push(Metric {
+                name: ("ttf", metric),
+                methods: methods_of(spec, labels),
+                strata: Box::new(move |s| ttf_strata(rep, std::slice::from_ref(s), strict)),
+                stat: mean_of_means,
+            });
+        }
+    }
+    if let Some((rep, labels)) = platform {
+        metrics.push(Metric {
+            name: ("platform", "success_pct"),
+            methods: methods_of(spec, labels),
+            strata: Box::new(move |s| platform_strata(rep, std::slice::from_ref(s))),
+            stat: mean_of_means,
+        });
+    }
+    if let Some((rep, labels)) = race {
+        metrics.push(Metric {
+            name: ("race", "return_q25"),
+            methods: methods_of(spec, labels),
+            strata: Box::new(move |s| race_strata(rep, std::slice::from_ref(s))),
+            stat: q25_pooled,
+        });
+    }
     let mut out = Vec::new();
     for [a, b] in &c.pairs {
-        if let Some((rep, labels)) = ttf {
-            for (metric, strict) in [("ttf", false), ("strict_ttf", true)] {
-                let units = |m: &Method| -> BySeed {
-                    by_seed(m, |s| ttf_strata(rep, std::slice::from_ref(s), strict))
-                };
-                out.extend(contrast(
-                    spec,
-                    ("ttf", metric, severity),
-                    (a, b),
-                    labels,
-                    units,
-                    mean_of_means,
-                    r,
-                ));
-            }
-        }
-        if let Some((rep, labels)) = platform {
-            let units = |m: &Method| -> BySeed {
-                by_seed(m, |s| platform_strata(rep, std::slice::from_ref(s)))
-            };
-            out.extend(contrast(
-                spec,
-                ("platform", "success_pct", severity),
-                (a, b),
-                labels,
-                units,
-                mean_of_means,
-                r,
-            ));
-        }
-        if let Some((rep, labels)) = race {
-            let units = |m: &Method| -> BySeed {
-                by_seed(m, |s| race_strata(rep, std::slice::from_ref(s)))
-            };
-            out.extend(contrast(
-                spec,
-                ("race", "return_q25", severity),
-                (a, b),
-                labels,
-                units,
-                q25_pooled,
-                r,
-            ));
+        for m in &metrics {
+            out.extend(contrast(m, severity, (a, b), r));
         }
     }
     out
+}
+
+/// One run's strata of robots on a metric, by its label.
+type RunStrata<'a> = Box<dyn Fn(&String) -> Vec<Vec<f64>> + 'a>;
+
+/// One benchmark metric at one rung: the methods that ran it, one seed's strata
+/// (by run label) and the curve's statistic.
+struct Metric<'a> {
+    name: (&'static str, &'static str),
+    methods: Vec<Method>,
+    strata: RunStrata<'a>,
+    stat: Statistic,
 }
 
 /// Method `m`'s strata per seed (`strata(seed label)`), seeds without any left out.
@@ -198,24 +197,22 @@ fn by_seed(m: &Method, strata: impl Fn(&String) -> Vec<Vec<f64>>) -> BySeed {
         .collect()
 }
 
-/// The contrast of methods `a` and `b` (labels of one of their runs) among the
-/// evaluated `labels`; `None` when either did not run this benchmark.
+/// The contrast of methods `a` and `b` (labels of one of their runs) on metric
+/// `m`; `None` when either did not run it.
 fn contrast(
-    spec: &ExperimentSpec,
-    (benchmark, metric, severity): (&'static str, &'static str, usize),
+    m: &Metric,
+    severity: usize,
     (a, b): (&String, &String),
-    labels: &[String],
-    units: impl Fn(&Method) -> BySeed,
-    stat: Statistic,
     r: Resampling,
 ) -> Option<Contrast> {
-    let methods = methods_of(spec, labels);
-    let find = |l: &String| methods.iter().find(|m| m.seeds.contains(l)).cloned();
+    let (benchmark, metric) = m.name;
+    let find = |l: &String| m.methods.iter().find(|x| x.seeds.contains(l));
     let (ma, mb) = (find(a)?, find(b)?);
-    let (ua, ub) = (units(&ma), units(&mb));
+    let (ua, ub) = (by_seed(ma, &m.strata), by_seed(mb, &m.strata));
     if ua.is_empty() || ub.is_empty() {
         return None;
     }
+    let stat = m.stat;
     let name = format!(
         "contrast/{benchmark}/{metric}/{}/{}/{severity}",
         ma.label, mb.label

@@ -839,10 +839,7 @@ impl ExperimentResults {
             .with_context(|| format!("{} is not a results file of this version", json.display()))?;
         results.preface = preface;
         let staging = fresh_staging(dir)?;
-        std::fs::create_dir_all(staging.join("figures"))
-            .with_context(|| format!("creating {}", staging.display()))?;
-        results.write_tables(&staging)?;
-        super::plots::write_all(&results, &staging.join("figures"))?;
+        results.write_derived(&staging)?;
         move_staged(&staging, dir, &["", "figures"])
     }
 
@@ -855,31 +852,29 @@ impl ExperimentResults {
         text
     }
 
-    /// README.md and the CSV tables into `dir`.
-    fn write_tables(&self, dir: &Path) -> Result<()> {
-        let write = |name: &str, text: &str| -> Result<()> {
-            let path = dir.join(name);
-            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
-        };
-        write("README.md", &self.markdown())?;
+    /// What `results.json` determines, into `dir`: README.md, the CSV tables and
+    /// the figures.
+    fn write_derived(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir.join("figures"))
+            .with_context(|| format!("creating {}", dir.display()))?;
+        write_file(dir, "README.md", &self.markdown())?;
         for (name, text) in self.csv_files() {
-            write(name, &text)?;
+            write_file(dir, name, &text)?;
         }
-        Ok(())
+        super::plots::write_all(self, &dir.join("figures"))
     }
 
     fn write_into(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir.join("figures"))
-            .with_context(|| format!("creating {}", dir.display()))?;
-        let write = |name: &str, text: &str| -> Result<()> {
-            let path = dir.join(name);
-            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
-        };
-        self.write_tables(dir)?;
-        write("results.json", &serde_json::to_string_pretty(self)?)?;
-        write("evaluation_time.txt", &self.evaluation_time())?;
-        super::plots::write_all(self, &dir.join("figures"))
+        self.write_derived(dir)?;
+        write_file(dir, "results.json", &serde_json::to_string_pretty(self)?)?;
+        write_file(dir, "evaluation_time.txt", &self.evaluation_time())
     }
+}
+
+/// Writes `text` to `dir/name`, naming the file on failure.
+fn write_file(dir: &Path, name: &str, text: &str) -> Result<()> {
+    let path = dir.join(name);
+    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
 }
 
 /// An empty staging folder beside results folder `dir` (`.<name>.rall-tmp`).
