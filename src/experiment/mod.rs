@@ -4,6 +4,7 @@
 //! drops, race track with the IQR meta controller) and writes tables beside the
 //! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
 
+mod clock;
 pub mod contrasts;
 pub mod curve_plots;
 pub mod curves;
@@ -20,7 +21,6 @@ pub mod stats;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
@@ -32,6 +32,8 @@ use crate::eval::{
 };
 use crate::runner::policy_file::{is_actor_only, save_actor_only};
 use crate::runner::{install_teacher, train, PhaseOneOnly, Progress, RunDir, TrainSummary, LATEST};
+use clock::PhaseClock;
+pub use clock::PhaseTime;
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use spec::ExperimentSpec;
 use spec::MetaSpec;
@@ -776,45 +778,50 @@ fn track_all(
         .iter()
         .map(|path| Ok(TrainConfig::from_toml_file(path)?.env.randomization))
         .collect::<Result<Vec<_>>>()?;
-    let tracked: Vec<&spec::RunSpec> = runs
+    let policies = runs
         .iter()
-        .map(|(r, _)| r)
-        .filter(|r| available.contains(&r.label))
-        .collect();
-    // each run's evaluations on its own thread, the runs side by side
-    crate::eval::jobs::run_jobs(&tracked, threads, |r, threads| {
-        let (p, policy_iteration) = load_final_policy(spec, &r.label)?;
-        let track = |env: &EnvConfig| {
-            evaluate_tracking(
-                &p.policy,
-                env,
-                spec.tracking.episodes,
-                threads,
-                spec.tracking.seed,
-                ActionMode::Mean,
-            )
-        };
-        let env = tracking_env(&p.env);
-        let own = track(&env)?;
-        // a common randomisation equal to the run's own is the same evaluation: reused
-        let on_common = common
-            .iter()
-            .map(|c| {
-                let common_env = with_randomization(env.clone(), c);
-                if common_env == env {
-                    Ok(own.clone())
-                } else {
-                    track(&common_env)
-                }
-            })
-            .collect::<Result<Vec<_>>>()?;
-        Ok(RunTracking {
-            label: r.label.clone(),
-            own,
-            common: on_common,
-            policy_iteration,
+        .filter(|(r, _)| available.contains(&r.label))
+        .map(|(r, _)| load_final_policy(spec, &r.label))
+        .collect::<Result<Vec<_>>>()?;
+    // One job per (run, environment), not per run: the jobs are many and small,
+    // so the cores stay busy to the end of the stage. A common randomisation
+    // equal to the run's own is the same evaluation: run once, reported twice.
+    let mut jobs: Vec<(usize, EnvConfig)> = Vec::new();
+    let mut reports_of_run = Vec::new();
+    for (i, (p, _)) in policies.iter().enumerate() {
+        let own = tracking_env(&p.env);
+        let mut slots = Vec::new();
+        for env in std::iter::once(own.clone())
+            .chain(common.iter().map(|c| with_randomization(own.clone(), c)))
+        {
+            let existing = jobs.iter().position(|(j, e)| *j == i && *e == env);
+            slots.push(existing.unwrap_or_else(|| {
+                jobs.push((i, env));
+                jobs.len() - 1
+            }));
+        }
+        reports_of_run.push(slots);
+    }
+    let reports = crate::eval::jobs::run_jobs(&jobs, threads, |(i, env), threads| {
+        evaluate_tracking(
+            &policies[*i].0.policy,
+            env,
+            spec.tracking.episodes,
+            threads,
+            spec.tracking.seed,
+            ActionMode::Mean,
+        )
+    })?;
+    Ok(policies
+        .iter()
+        .zip(reports_of_run)
+        .map(|((p, policy_iteration), slots)| RunTracking {
+            label: p.name.clone(),
+            own: reports[slots[0]].clone(),
+            common: slots[1..].iter().map(|&k| reports[k].clone()).collect(),
+            policy_iteration: *policy_iteration,
         })
-    })
+        .collect())
 }
 
 fn ttf_options(spec: &ExperimentSpec, threads: usize) -> Result<TtfOptions> {
@@ -901,65 +908,6 @@ fn race_runs(methods: Vec<String>, metas: &[MetaConfig]) -> Vec<String> {
         }
     }
     labels
-}
-
-/// The evaluation's stages as they start (printed), and the minutes each took.
-struct PhaseClock {
-    start: Instant,
-    stages: usize,
-    started: usize,
-    current: Option<(String, Instant)>,
-    /// (phase, minutes) of the stages ended so far, and any finer phases added.
-    phases: Vec<(String, f64)>,
-}
-
-impl PhaseClock {
-    fn new(stages: usize) -> PhaseClock {
-        PhaseClock {
-            start: Instant::now(),
-            stages,
-            started: 0,
-            current: None,
-            phases: Vec::new(),
-        }
-    }
-
-    /// Ends the current stage and starts `what`.
-    fn next(&mut self, what: &str) {
-        self.end_current();
-        let k = self.started + 1;
-        eprintln!(
-            "[eval {k}/{}] {what} ({:.1} min so far)",
-            self.stages,
-            self.total_min()
-        );
-        self.current = Some((what.to_string(), Instant::now()));
-        self.started += 1;
-    }
-
-    /// Runs `f` inside the current stage and lists its minutes as `what`.
-    fn time<R>(&mut self, what: String, f: impl FnOnce() -> R) -> R {
-        let t = Instant::now();
-        let out = f();
-        self.phases.push((what, t.elapsed().as_secs_f64() / 60.0));
-        out
-    }
-
-    /// Minutes since the evaluation started.
-    fn total_min(&self) -> f64 {
-        self.start.elapsed().as_secs_f64() / 60.0
-    }
-
-    fn end_current(&mut self) {
-        if let Some((what, t)) = self.current.take() {
-            self.phases.push((what, t.elapsed().as_secs_f64() / 60.0));
-        }
-    }
-
-    fn finish(mut self) -> Vec<(String, f64)> {
-        self.end_current();
-        self.phases
-    }
 }
 
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
@@ -1058,10 +1006,10 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             ladder::rung_contrasts(spec, 0, &reports, &tables),
         ),
     };
-    let wall_s = clock.total_min() * 60.0;
-    let phases = clock.finish();
-    let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race, wall_s);
-    results.phase_min = phases;
+    let (whole, phases) = clock.finish();
+    let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race);
+    results.evaluation_time = Some(whole);
+    results.phases = phases;
     results.set_curves(spec, curves)?;
     results.contrasts = contrasts;
     results.preface = spec.preface_text()?;

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
+use super::clock::PhaseTime;
 use super::contrasts::{contrasts_csv, contrasts_markdown, Contrast};
 use super::curves::{curve_csv, curve_markdown, CurvePoint};
 use super::kcheck::CheckpointSpread;
@@ -183,10 +184,10 @@ pub struct ExperimentResults {
     pub preface: Option<String>,
     /// Not part of the tables (they are reproducible to the byte; this is not).
     #[serde(skip)]
-    pub evaluation_wall_clock_min: f64,
-    /// Where the evaluation's time went: (phase, minutes), in order.
+    pub evaluation_time: Option<PhaseTime>,
+    /// Where the evaluation's time went, stage by stage, in order.
     #[serde(skip)]
-    pub phase_min: Vec<(String, f64)>,
+    pub phases: Vec<PhaseTime>,
 }
 
 const TTF_COLUMNS: [(&str, bool); 4] = [
@@ -205,7 +206,6 @@ impl ExperimentResults {
         ttf: Option<TtfReport>,
         platform: Option<PlatformReport>,
         race: Option<RaceReport>,
-        eval_wall_s: f64,
     ) -> ExperimentResults {
         let b = &spec.bootstrap;
         let methods = MethodTables::new(spec, ttf.as_ref(), platform.as_ref(), race.as_ref());
@@ -237,8 +237,8 @@ impl ExperimentResults {
             risk_signal: Vec::new(),
             contrasts: Vec::new(),
             preface: None,
-            evaluation_wall_clock_min: eval_wall_s / 60.0,
-            phase_min: Vec::new(),
+            evaluation_time: None,
+            phases: Vec::new(),
         }
     }
 
@@ -843,11 +843,16 @@ impl ExperimentResults {
         move_staged(&staging, dir, &["", "figures"])
     }
 
-    /// The whole evaluation's minutes, then each phase's.
-    fn evaluation_time(&self) -> String {
-        let mut text = format!("{:.2} min\n", self.evaluation_wall_clock_min);
-        for (phase, min) in &self.phase_min {
-            text.push_str(&format!("  {phase}: {min:.2} min\n"));
+    /// The whole evaluation's time, then each phase's: wall-clock minutes and
+    /// processor minutes of every thread.
+    fn evaluation_time_text(&self) -> String {
+        let mut text = self
+            .evaluation_time
+            .as_ref()
+            .map_or("not measured".into(), PhaseTime::show);
+        text.push('\n');
+        for p in &self.phases {
+            text.push_str(&format!("  {}: {}\n", p.phase, p.show()));
         }
         text
     }
@@ -867,7 +872,7 @@ impl ExperimentResults {
     fn write_into(&self, dir: &Path) -> Result<()> {
         self.write_derived(dir)?;
         write_file(dir, "results.json", &serde_json::to_string_pretty(self)?)?;
-        write_file(dir, "evaluation_time.txt", &self.evaluation_time())
+        write_file(dir, "evaluation_time.txt", &self.evaluation_time_text())
     }
 }
 
