@@ -268,7 +268,11 @@ pub fn evaluate_ttf_runs(
     mut progress: impl FnMut(&TtfCell),
 ) -> Result<(TtfReport, Vec<CheckpointSpread>)> {
     let Some(c) = &spec.checkpoints else {
-        let report = evaluate_ttf(&super::load_runs(spec, labels)?, opts, progress)?;
+        let report = evaluate_ttf(
+            &super::final_policy::load_runs(spec, labels)?,
+            opts,
+            progress,
+        )?;
         return Ok((report, Vec::new()));
     };
     let mut reports = Vec::new();
@@ -296,7 +300,11 @@ pub fn evaluate_platform_runs(
     mut progress: impl FnMut(&PlatformCell),
 ) -> Result<(PlatformReport, Vec<CheckpointSpread>)> {
     let Some(c) = &spec.checkpoints else {
-        let report = evaluate_platform(&super::load_runs(spec, labels)?, opts, progress)?;
+        let report = evaluate_platform(
+            &super::final_policy::load_runs(spec, labels)?,
+            opts,
+            progress,
+        )?;
         return Ok((report, Vec::new()));
     };
     let mut reports = Vec::new();

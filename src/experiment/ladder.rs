@@ -5,12 +5,14 @@
 
 use anyhow::Result;
 
+use super::clock::PhaseClock;
 use super::contrasts::{contrasts_at, Contrast};
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
+use super::evaluate::seeds;
+use super::final_policy::load_runs;
 use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
-use super::{load_runs, seeds, PhaseClock};
 use crate::eval::{
     evaluate_race, MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport,
     TtfOptions, TtfReport,

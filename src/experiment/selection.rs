@@ -221,9 +221,9 @@ pub fn select_as(
         );
     }
     if choice == Choice::FinalPolicy {
-        super::copy_atomic(&paths[k], &dir.join(SELECTED))?;
+        super::ship::copy_atomic(&paths[k], &dir.join(SELECTED))?;
     }
-    super::write_atomic(&dir.join(choice.csv()), &csv)?;
+    super::ship::write_atomic(&dir.join(choice.csv()), &csv)?;
     Ok(found[k])
 }
 
