@@ -7,7 +7,9 @@ use anyhow::{bail, Result};
 use clap::Args;
 
 use crate::experiment::results::ExperimentResults;
-use crate::experiment::{run_experiment, run_state, ship_all, ExperimentOptions, ExperimentSpec};
+use crate::experiment::{
+    run_experiment, ship_all, status_lines, ExperimentOptions, ExperimentSpec,
+};
 
 #[derive(Debug, Args)]
 pub struct ExperimentArgs {
@@ -79,25 +81,8 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         return Ok(());
     }
     if args.status {
-        let width = spec.runs.iter().map(|r| r.label.len()).max().unwrap_or(0);
-        for r in &spec.runs {
-            let s = run_state(&spec, r)?;
-            let at = s.progress.as_ref().map_or(0, |p| p.iteration);
-            let state = if s.done() {
-                "done"
-            } else if s.progress.is_some() {
-                "unfinished"
-            } else {
-                "not started"
-            };
-            println!(
-                "{:<width$} {:<12} {:>6} / {:<6} {}",
-                r.label,
-                state,
-                at,
-                s.target,
-                s.dir.display()
-            );
+        for line in status_lines(&spec)? {
+            println!("{line}");
         }
         return Ok(());
     }

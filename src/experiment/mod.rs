@@ -20,6 +20,7 @@ pub mod selection;
 mod ship;
 pub mod spec;
 pub mod stats;
+mod status;
 mod training;
 
 use std::path::PathBuf;
@@ -36,6 +37,7 @@ pub use final_policy::{choose_final_policies, newest_checkpoint, selected_checkp
 pub use results::{ExperimentResults, RunTracking, TrackingEstimates};
 pub use ship::{restore_shipped, ship_all};
 pub use spec::ExperimentSpec;
+pub use status::status_lines;
 pub use training::train_all;
 
 /// What to do.

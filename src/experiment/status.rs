@@ -1,0 +1,156 @@
+//! `rall experiment FILE --status`: where every run stands and, for a campaign
+//! trained over several sittings, how much is left at the pace runs go now.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+
+use super::spec::ExperimentSpec;
+use super::{run_state, RunState};
+
+/// Iterations over which a run's recent pace is measured.
+pub const PACE_WINDOW: usize = 100;
+
+/// Seconds per iteration over the last `window` iterations of `metrics.csv` at
+/// `path` (wall clock, pauses included); `None` with fewer rows than that.
+pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let col = |name: &str| {
+        head.iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{} has no column {name}", path.display()))
+    };
+    let (it_col, wall_col) = (col("iteration")?, col("wall_s")?);
+    let rows: Vec<(usize, f64)> = lines
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            Some((f.get(it_col)?.parse().ok()?, f.get(wall_col)?.parse().ok()?))
+        })
+        .collect();
+    let Some(&(last_it, last_wall)) = rows.last() else {
+        return Ok(None);
+    };
+    let Some(&(first_it, first_wall)) = rows
+        .iter()
+        .rev()
+        .find(|(it, _)| last_it.saturating_sub(*it) >= window)
+    else {
+        return Ok(None);
+    };
+    Ok(Some((last_wall - first_wall) / (last_it - first_it) as f64))
+}
+
+/// One run's line of the status.
+struct RunLine {
+    label: String,
+    state: &'static str,
+    at: usize,
+    target: usize,
+    dir: String,
+    s_per_it: Option<f64>,
+}
+
+fn run_line(label: &str, s: &RunState) -> Result<RunLine> {
+    let at = s.progress.as_ref().map_or(0, |p| p.iteration);
+    let state = if s.done() {
+        "done"
+    } else if s.progress.is_some() {
+        "unfinished"
+    } else {
+        "not started"
+    };
+    let s_per_it = if state == "unfinished" {
+        recent_s_per_iteration(&s.dir.join("metrics.csv"), PACE_WINDOW)?
+    } else {
+        None
+    };
+    Ok(RunLine {
+        label: label.to_string(),
+        state,
+        at,
+        target: s.target,
+        dir: s.dir.display().to_string(),
+        s_per_it,
+    })
+}
+
+/// The status of every run of `spec`, one line each, then what is left.
+pub fn status_lines(spec: &ExperimentSpec) -> Result<Vec<String>> {
+    let runs = spec
+        .runs
+        .iter()
+        .map(|r| run_line(&r.label, &run_state(spec, r)?))
+        .collect::<Result<Vec<_>>>()?;
+    let width = runs.iter().map(|r| r.label.len()).max().unwrap_or(0);
+    let mut out: Vec<String> = runs
+        .iter()
+        .map(|r| {
+            let pace = r.s_per_it.map_or(String::new(), |s| {
+                format!(
+                    "  {s:.2} s/it over its last {PACE_WINDOW} iterations: {:.1} h to go",
+                    s * (r.target - r.at.min(r.target)) as f64 / 3600.0
+                )
+            });
+            format!(
+                "{:<width$} {:<12} {:>6} / {:<6} {}{pace}",
+                r.label, r.state, r.at, r.target, r.dir
+            )
+        })
+        .collect();
+    let left: usize = runs.iter().map(|r| r.target - r.at.min(r.target)).sum();
+    let unfinished = runs.iter().filter(|r| r.state != "done").count();
+    if left > 0 {
+        let mut paces: Vec<f64> = runs.iter().filter_map(|r| r.s_per_it).collect();
+        paces.sort_by(f64::total_cmp);
+        let line = match paces.get(paces.len() / 2) {
+            Some(&s) => format!(
+                "left: {left} iterations in {unfinished} runs, {:.1} run-hours at {s:.2} s/it \
+                 (the median recent pace of the runs in training; one run per core)",
+                s * left as f64 / 3600.0
+            ),
+            None => format!("left: {left} iterations in {unfinished} runs"),
+        };
+        out.push(line);
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pace_is_taken_over_the_last_window_of_iterations() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let mut csv = String::from("iteration,wall_s,total_env_steps\n");
+        // 1 s per iteration up to 200, then 3 s per iteration
+        for it in 1..=300usize {
+            let wall = if it <= 200 {
+                it as f64
+            } else {
+                200.0 + 3.0 * (it - 200) as f64
+            };
+            csv.push_str(&format!("{it},{wall},{}\n", it * 10));
+        }
+        std::fs::write(&path, csv).unwrap();
+        let s = recent_s_per_iteration(&path, 100).unwrap().unwrap();
+        assert!((s - 3.0).abs() < 1e-9, "{s}");
+        let s = recent_s_per_iteration(&path, 200).unwrap().unwrap();
+        assert!((s - 2.0).abs() < 1e-9, "{s}");
+        assert_eq!(recent_s_per_iteration(&path, 400).unwrap(), None);
+        assert_eq!(
+            recent_s_per_iteration(&dir.path().join("none.csv"), 100).unwrap(),
+            None
+        );
+        std::fs::write(&path, "iteration,steps\n1,2\n").unwrap();
+        let err = recent_s_per_iteration(&path, 1).unwrap_err();
+        assert!(err.to_string().contains("no column wall_s"), "{err}");
+    }
+}
