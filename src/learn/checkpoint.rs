@@ -137,7 +137,37 @@ pub fn serialize_checkpoint(
             .with_context(|| format!("tensor `{name}` with shape {shape:?}"))?;
         views.push((name.clone(), view));
     }
-    safetensors::serialize(views, Some(meta)).map_err(|e| anyhow::anyhow!("{e:?}"))
+    let buf = safetensors::serialize(views, Some(meta)).map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    canonical_header(buf)
+}
+
+/// The same file with its header's keys in sorted order. The format writes its
+/// metadata map in no fixed order, so the same checkpoint serialised twice gave
+/// different bytes; sorted, the same contents are the same bytes (identical
+/// files cost nothing more in a repository, and a rewrite changes nothing).
+fn canonical_header(mut buf: Vec<u8>) -> Result<Vec<u8>> {
+    use std::collections::BTreeMap;
+    let n = u64::from_le_bytes(buf[..8].try_into().expect("8 bytes")) as usize;
+    let header: BTreeMap<String, serde_json::Value> = serde_json::from_slice(&buf[8..8 + n])?;
+    let sorted: BTreeMap<String, serde_json::Value> = header
+        .into_iter()
+        .map(|(k, v)| match v {
+            serde_json::Value::Object(m) => {
+                let entries: BTreeMap<String, serde_json::Value> = m.into_iter().collect();
+                Ok((k, serde_json::to_value(entries)?))
+            }
+            v => Ok((k, v)),
+        })
+        .collect::<Result<_>>()?;
+    let text = serde_json::to_string(&sorted)?;
+    // the same entries in another order: the same length, padded as before
+    anyhow::ensure!(
+        text.len() <= n,
+        "re-ordering the checkpoint header changed its length"
+    );
+    buf[8..8 + text.len()].copy_from_slice(text.as_bytes());
+    buf[8 + text.len()..8 + n].fill(b' ');
+    Ok(buf)
 }
 
 /// `<path>.tmp`, fsync, rename, fsync of the directory (best effort); a failed
@@ -293,4 +323,55 @@ fn push_tensor(out: &mut Checkpoint, name: String, view: &TensorView, path: &Pat
         ),
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn contents() -> (Vec<NamedTensor>, HashMap<String, String>) {
+        let tensors = ["actor.0.weight", "critic.0.bias", "actor.0.bias", "a"]
+            .iter()
+            .enumerate()
+            .map(|(i, n)| NamedTensor {
+                name: n.to_string(),
+                shape: vec![2, i + 1],
+                data: (0..2 * (i + 1))
+                    .map(|v| v as f32 * 0.5 - i as f32)
+                    .collect(),
+            })
+            .collect();
+        let meta = (0..40)
+            .map(|i| (format!("key{i}"), format!("value {i} \"quoted\"")))
+            .collect();
+        (tensors, meta)
+    }
+
+    #[test]
+    fn the_same_contents_serialise_to_the_same_bytes() {
+        let (tensors, meta) = contents();
+        let blobs = vec![("state".to_string(), vec![1u8, 2, 3])];
+        let first = serialize_checkpoint(&tensors, &blobs, &meta).unwrap();
+        for _ in 0..8 {
+            // a map built again iterates in another order
+            let again: HashMap<String, String> =
+                meta.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+            assert_eq!(
+                serialize_checkpoint(&tensors, &blobs, &again).unwrap(),
+                first
+            );
+        }
+        let back = decode_checkpoint(&first, Path::new("mem")).unwrap();
+        assert!(back.verified);
+        // the file keeps tensors in its own (offset) order
+        let by_name = |mut v: Vec<NamedTensor>| {
+            v.sort_by(|a, b| a.name.cmp(&b.name));
+            v
+        };
+        assert_eq!(by_name(back.tensors), by_name(tensors));
+        assert_eq!(back.blobs, blobs);
+        for (k, v) in &meta {
+            assert_eq!(back.metadata.get(k), Some(v), "{k}");
+        }
+    }
 }

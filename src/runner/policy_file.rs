@@ -136,9 +136,9 @@ pub fn save_actor_only(src: &Path, path: &Path) -> Result<()> {
 }
 
 /// Whether `path` already holds exactly `tensors` and `meta` (checksums aside).
-/// The file format keeps metadata in no fixed order, so writing the same
-/// checkpoint twice gives different bytes; leaving an unchanged file alone keeps
-/// re-shipping a finished run from rewriting its files.
+/// Leaving such a file alone keeps re-shipping a finished run from rewriting its
+/// files, including those written before headers were sorted (the same contents
+/// in other bytes).
 fn holds_already(path: &Path, tensors: &[NamedTensor], meta: &HashMap<String, String>) -> bool {
     let Ok(old) = read_checkpoint(path) else {
         return false;
