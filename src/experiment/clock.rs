@@ -145,7 +145,7 @@ mod tests {
 
     #[test]
     fn stat_lines_give_user_plus_system_seconds_whatever_the_command_name() {
-        // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt utime stime ...
+        // pid (comm) state ppid pgrp sid tty tpgid flags minflt cminflt majflt cmajflt utime stime ...
         let line = "4242 (rall (eval) x) R 1 2 3 4 5 6 7 8 9 10 1234 566 0 0 20 0 3 0";
         assert_eq!(cpu_s_from_stat(line), Some(18.0));
         assert_eq!(cpu_s_from_stat("4242 (rall) R 1 2"), None);
