@@ -7,6 +7,7 @@ use anyhow::{Context, Result};
 
 use super::spec::ExperimentSpec;
 use super::{run_state, RunState};
+use crate::runner::metrics::metrics_columns;
 
 /// Iterations over which a run's recent pace is measured.
 pub const PACE_WINDOW: usize = 100;
@@ -19,19 +20,9 @@ pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>>
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
     };
-    let mut lines = text.lines();
-    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
-    let col = |name: &str| {
-        head.iter()
-            .position(|h| *h == name)
-            .with_context(|| format!("{} has no column {name}", path.display()))
-    };
-    let (it_col, wall_col) = (col("iteration")?, col("wall_s")?);
-    let rows: Vec<(usize, f64)> = lines
-        .filter_map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            Some((f.get(it_col)?.parse().ok()?, f.get(wall_col)?.parse().ok()?))
-        })
+    let rows: Vec<(usize, f64)> = metrics_columns(&text, path, ["iteration", "wall_s"])?
+        .into_iter()
+        .filter_map(|[it, wall]| Some((it.parse().ok()?, wall.parse().ok()?)))
         .collect();
     let Some(&(last_it, last_wall)) = rows.last() else {
         return Ok(None);
@@ -46,38 +37,65 @@ pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>>
     Ok(Some((last_wall - first_wall) / (last_it - first_it) as f64))
 }
 
+/// Where a run stands.
+#[derive(Clone, Copy, PartialEq)]
+enum Stage {
+    Done,
+    Unfinished,
+    NotStarted,
+}
+
+impl Stage {
+    fn of(s: &RunState) -> Stage {
+        if s.done() {
+            Stage::Done
+        } else if s.progress.is_some() {
+            Stage::Unfinished
+        } else {
+            Stage::NotStarted
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Stage::Done => "done",
+            Stage::Unfinished => "unfinished",
+            Stage::NotStarted => "not started",
+        }
+    }
+}
+
 /// One run's line of the status.
 struct RunLine {
     label: String,
-    state: &'static str,
+    stage: Stage,
     at: usize,
     target: usize,
     dir: String,
     s_per_it: Option<f64>,
 }
 
-fn run_line(label: &str, s: &RunState) -> Result<RunLine> {
-    let at = s.progress.as_ref().map_or(0, |p| p.iteration);
-    let state = if s.done() {
-        "done"
-    } else if s.progress.is_some() {
-        "unfinished"
-    } else {
-        "not started"
-    };
-    let s_per_it = if state == "unfinished" {
-        recent_s_per_iteration(&s.dir.join("metrics.csv"), PACE_WINDOW)?
-    } else {
-        None
-    };
-    Ok(RunLine {
-        label: label.to_string(),
-        state,
-        at,
-        target: s.target,
-        dir: s.dir.display().to_string(),
-        s_per_it,
-    })
+impl RunLine {
+    fn new(label: &str, s: &RunState) -> Result<RunLine> {
+        let stage = Stage::of(s);
+        let s_per_it = match stage {
+            Stage::Unfinished => recent_s_per_iteration(&s.dir.join("metrics.csv"), PACE_WINDOW)?,
+            _ => None,
+        };
+        Ok(RunLine {
+            label: label.to_string(),
+            stage,
+            at: s.progress.as_ref().map_or(0, |p| p.iteration),
+            target: s.target,
+            dir: s.dir.display().to_string(),
+            s_per_it,
+        })
+    }
+
+    /// Iterations still to train.
+    fn left(&self) -> usize {
+        self.target - self.at.min(self.target)
+    }
 }
 
 /// The status of every run of `spec`, one line each, then what is left.
@@ -85,7 +103,7 @@ pub fn status_lines(spec: &ExperimentSpec) -> Result<Vec<String>> {
     let runs = spec
         .runs
         .iter()
-        .map(|r| run_line(&r.label, &run_state(spec, r)?))
+        .map(|r| RunLine::new(&r.label, &run_state(spec, r)?))
         .collect::<Result<Vec<_>>>()?;
     let width = runs.iter().map(|r| r.label.len()).max().unwrap_or(0);
     let mut out: Vec<String> = runs
@@ -94,17 +112,21 @@ pub fn status_lines(spec: &ExperimentSpec) -> Result<Vec<String>> {
             let pace = r.s_per_it.map_or(String::new(), |s| {
                 format!(
                     "  {s:.2} s/it over its last {PACE_WINDOW} iterations: {:.1} h to go",
-                    s * (r.target - r.at.min(r.target)) as f64 / 3600.0
+                    s * r.left() as f64 / 3600.0
                 )
             });
             format!(
                 "{:<width$} {:<12} {:>6} / {:<6} {}{pace}",
-                r.label, r.state, r.at, r.target, r.dir
+                r.label,
+                r.stage.name(),
+                r.at,
+                r.target,
+                r.dir
             )
         })
         .collect();
-    let left: usize = runs.iter().map(|r| r.target - r.at.min(r.target)).sum();
-    let unfinished = runs.iter().filter(|r| r.state != "done").count();
+    let left: usize = runs.iter().map(RunLine::left).sum();
+    let unfinished = runs.iter().filter(|r| r.stage != Stage::Done).count();
     if left > 0 {
         let mut paces: Vec<f64> = runs.iter().filter_map(|r| r.s_per_it).collect();
         paces.sort_by(f64::total_cmp);

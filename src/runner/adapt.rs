@@ -367,26 +367,17 @@ pub fn install_teacher(dir: &RunDir, teacher: &std::path::Path) -> Result<()> {
 fn metrics_at(path: &std::path::Path, iteration: usize) -> Result<(f64, u64)> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut lines = text.lines();
-    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
-    let col = |name: &str| {
-        head.iter()
-            .position(|h| *h == name)
-            .with_context(|| format!("{} has no column {name}", path.display()))
-    };
-    let (it_col, wall_col, steps_col) =
-        (col("iteration")?, col("wall_s")?, col("total_env_steps")?);
-    for line in lines {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.get(it_col).and_then(|s| s.parse::<usize>().ok()) == Some(iteration) {
-            let parse = |c: usize| f.get(c).copied().unwrap_or("");
-            let wall_s = parse(wall_col).parse().with_context(|| {
+    let rows =
+        super::metrics::metrics_columns(&text, path, ["iteration", "wall_s", "total_env_steps"])?;
+    for [it, wall, steps] in rows {
+        if it.parse::<usize>().ok() == Some(iteration) {
+            let wall_s = wall.parse().with_context(|| {
                 format!(
                     "{}: bad wall_s in the row of iteration {iteration}",
                     path.display()
                 )
             })?;
-            let steps = parse(steps_col).parse().with_context(|| {
+            let steps = steps.parse().with_context(|| {
                 format!(
                     "{}: bad total_env_steps in the row of iteration {iteration}",
                     path.display()

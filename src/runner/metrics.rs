@@ -12,6 +12,31 @@ use crate::env::risk::{NUM_RISK_TERMS, RISK_TERM_NAMES};
 use crate::env::{EpisodeEnd, EpisodeSummary};
 use crate::learn::UpdateStats;
 
+/// The fields of columns `names` in every row of a `metrics.csv` whose text is
+/// `text` (read from `path`, which errors name); a field a short row lacks is
+/// empty, and a column the header lacks is an error naming it.
+pub fn metrics_columns<'a, const N: usize>(
+    text: &'a str,
+    path: &Path,
+    names: [&str; N],
+) -> Result<Vec<[&'a str; N]>> {
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap_or("").split(',').collect();
+    let mut cols = [0; N];
+    for (c, name) in cols.iter_mut().zip(names) {
+        *c = head
+            .iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{} has no column {name}", path.display()))?;
+    }
+    Ok(lines
+        .map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            cols.map(|c| f.get(c).copied().unwrap_or(""))
+        })
+        .collect())
+}
+
 /// Means over the episodes that finished in one iteration.
 #[derive(Debug, Clone, Default)]
 pub struct EpisodeStats {
