@@ -3,7 +3,7 @@
 # checkpoint by the time-to-walk protocol (`rall eval tracking --episodes 128 --seed 777`;
 # linear tracking >= 0.8, yaw tracking >= MIN_YAW, falls < 5%), scanning from FROM, and its
 # MAX_IT checkpoint on 512 episodes (same seed). MIN_YAW is 0 unless set (straight walking,
-# what configs/flat.toml learns); FROM is 450 unless set (no run has walked before 600).
+# what configs/flat-paper.toml learns); FROM is 450 unless set (no run has walked before 600).
 #   [MIN_YAW=0] [FROM=450] experiments/sample-efficiency/walk-after.sh RUN_DIR MAX_IT > RUN_DIR.walk
 set -u
 run=$1; max_it=$2

@@ -5,8 +5,9 @@
 # Walking = linear tracking >= 0.8, yaw tracking >= MIN_YAW and falls < 5%; MIN_YAW is
 # 0.7 (a robot that turns when told to) unless set, and MIN_YAW=0 is the straight-walking
 # rule of the trials before yaw was required. Stops training at the first checkpoint that
-# walks. Iterations, not minutes, are compared: training is deterministic across thread
-# counts, so a 1-thread run makes the iterations a 2-thread run would.
+# walks. Iterations, not minutes, are compared, so trials can run beside other jobs. Training
+# is exact for a given thread count only: a 2-thread run of the same seed sums the update's
+# gradients in another order and follows another trajectory, so judge a variant on seeds.
 #   [MIN_YAW=0.7] experiments/sample-efficiency/walk-trial.sh CONFIG RUN_DIR MAX_IT [extra rall train args...]
 set -u
 cfg=$1; run=$2; max_it=$3; shift 3
