@@ -6,14 +6,26 @@
 //! busy. Every rollout's numbers depend on its seed alone, never on the thread
 //! count, so the results are the same bit for bit either way.
 
-use anyhow::{Context, Result};
-use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use anyhow::{anyhow, Result};
 
 use crate::learn::mat;
+
+/// Stack of each evaluation worker: the main thread's usual 8 MiB (a rollout's
+/// MuJoCo calls and the policy's buffers are small; this is headroom).
+const WORKER_STACK_BYTES: usize = 8 << 20;
 
 /// Runs `run(job, inner_threads)` for every job on `threads` workers and returns
 /// the results in job order. Jobs share the workers: each gets
 /// `max(1, threads / jobs)` threads of its own, so a lone job still uses them all.
+/// On failure, the error of the first failing job in job order is returned (every
+/// job before it has run) and no new job starts.
+///
+/// The workers are plain threads taking the next job from a counter, not a rayon
+/// pool: each job steps its envs on a rayon pool of its own, and a rayon worker
+/// that waits for another pool runs its own pool's pending jobs meanwhile, on the
+/// same stack. With hundreds of jobs that nesting overflowed the stack.
 pub fn run_jobs<J, T>(
     jobs: &[J],
     threads: usize,
@@ -29,17 +41,56 @@ where
     }
     let inner = (threads / jobs.len()).max(1);
     let workers = threads.min(jobs.len());
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(workers)
-        .thread_name(|i| format!("rall-eval-{i}"))
-        .build()
-        .with_context(|| format!("cannot start {workers} evaluation threads"))?;
-    // each job's inference on its own worker: the products do not fan out again
-    pool.install(|| {
-        jobs.par_iter()
-            .map(|j| mat::serial(|| run(j, inner)))
-            .collect()
-    })
+    let next_job = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    // one worker: take the next job until none is left or one has failed
+    let work = || {
+        let mut done = Vec::new();
+        while !failed.load(Ordering::Relaxed) {
+            let k = next_job.fetch_add(1, Ordering::Relaxed);
+            let Some(job) = jobs.get(k) else { break };
+            // each job's inference on its own worker: the products do not fan out again
+            let out = mat::serial(|| run(job, inner));
+            if out.is_err() {
+                failed.store(true, Ordering::Relaxed);
+            }
+            done.push((k, out));
+        }
+        done
+    };
+    let mut slots: Vec<Option<Result<T>>> = (0..jobs.len()).map(|_| None).collect();
+    let mut spawn_error = None;
+    std::thread::scope(|scope| {
+        let mut handles = Vec::with_capacity(workers);
+        for i in 0..workers {
+            let spawned = std::thread::Builder::new()
+                .name(format!("rall-eval-{i}"))
+                .stack_size(WORKER_STACK_BYTES)
+                .spawn_scoped(scope, work);
+            match spawned {
+                Ok(h) => handles.push(h),
+                Err(e) => {
+                    failed.store(true, Ordering::Relaxed);
+                    spawn_error = Some(anyhow!("cannot start evaluation thread {i}: {e}"));
+                    break;
+                }
+            }
+        }
+        for h in handles {
+            match h.join() {
+                Ok(done) => done.into_iter().for_each(|(k, out)| slots[k] = Some(out)),
+                Err(panic) => std::panic::resume_unwind(panic),
+            }
+        }
+    });
+    if let Some(e) = spawn_error {
+        return Err(e);
+    }
+    // in job order: the first error wins; a job left unrun follows an error
+    slots
+        .into_iter()
+        .map(|slot| slot.unwrap_or_else(|| Err(anyhow!("evaluation stopped early"))))
+        .collect()
 }
 
 #[cfg(test)]
@@ -59,6 +110,63 @@ mod tests {
         assert_eq!(lone, vec![(5, 4)]);
         let pair = run_jobs(&[1usize, 2], 4, |&j, inner| Ok((j, inner))).unwrap();
         assert_eq!(pair, vec![(1, 2), (2, 2)]);
+    }
+
+    /// Every job steps its envs on a rayon pool of its own. A worker waiting for that
+    /// pool must not start another job on top of the one it runs: nested jobs grew
+    /// the stack until it overflowed (hundreds of rollouts in one call).
+    #[test]
+    fn a_job_waiting_on_its_own_pool_does_not_start_another_on_its_stack() {
+        use rayon::prelude::*;
+        use std::cell::Cell;
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        thread_local!(static DEPTH: Cell<usize> = const { Cell::new(0) });
+        let deepest = AtomicUsize::new(0);
+        let jobs: Vec<usize> = (0..200).collect();
+        let out = run_jobs(&jobs, 2, |&j, _| {
+            let depth = DEPTH.with(|d| {
+                d.set(d.get() + 1);
+                d.get()
+            });
+            deepest.fetch_max(depth, Ordering::Relaxed);
+            let envs = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .build()
+                .unwrap();
+            let sum: u64 = envs.install(|| {
+                (0..64u64)
+                    .into_par_iter()
+                    .map(|i| {
+                        std::thread::sleep(std::time::Duration::from_micros(50));
+                        i
+                    })
+                    .sum()
+            });
+            DEPTH.with(|d| d.set(d.get() - 1));
+            Ok(sum + j as u64)
+        })
+        .unwrap();
+        assert_eq!(out, (0..200u64).map(|j| 2016 + j).collect::<Vec<_>>());
+        assert_eq!(
+            deepest.load(Ordering::Relaxed),
+            1,
+            "jobs nested on one stack"
+        );
+    }
+
+    #[test]
+    fn a_failure_stops_the_jobs_not_yet_started() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let started = AtomicUsize::new(0);
+        let jobs: Vec<usize> = (0..1000).collect();
+        let err = run_jobs(&jobs, 2, |&j, _| {
+            started.fetch_add(1, Ordering::Relaxed);
+            anyhow::ensure!(j != 3, "job {j} failed");
+            Ok(j)
+        })
+        .unwrap_err();
+        assert!(err.to_string().contains("job 3 failed"), "{err}");
+        assert!(started.load(Ordering::Relaxed) < 1000);
     }
 
     #[test]
