@@ -13,7 +13,9 @@ use crate::runner::metrics::metrics_columns;
 pub const PACE_WINDOW: usize = 100;
 
 /// Seconds per iteration over the last `window` iterations of `metrics.csv` at
-/// `path` (wall clock, pauses included); `None` with fewer rows than that.
+/// `path`: the median of the iterations' wall-clock steps, so that a pause (a
+/// stopped process, a machine asleep) counts as one slow iteration and does not
+/// stretch the pace; `None` with fewer rows than that.
 pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>> {
     let text = match std::fs::read_to_string(path) {
         Ok(t) => t,
@@ -24,17 +26,30 @@ pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>>
         .into_iter()
         .filter_map(|[it, wall]| Some((it.parse().ok()?, wall.parse().ok()?)))
         .collect();
-    let Some(&(last_it, last_wall)) = rows.last() else {
+    let Some(&(last_it, _)) = rows.last() else {
         return Ok(None);
     };
-    let Some(&(first_it, first_wall)) = rows
+    let Some(first) = rows
         .iter()
-        .rev()
-        .find(|(it, _)| last_it.saturating_sub(*it) >= window)
+        .rposition(|(it, _)| last_it.saturating_sub(*it) >= window)
     else {
         return Ok(None);
     };
-    Ok(Some((last_wall - first_wall) / (last_it - first_it) as f64))
+    let mut steps: Vec<f64> = rows[first..]
+        .windows(2)
+        .filter(|w| w[1].0 > w[0].0)
+        .map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0) as f64)
+        .collect();
+    if steps.is_empty() {
+        return Ok(None);
+    }
+    steps.sort_by(f64::total_cmp);
+    let mid = steps.len() / 2;
+    Ok(Some(if steps.len() % 2 == 1 {
+        steps[mid]
+    } else {
+        0.5 * (steps[mid - 1] + steps[mid])
+    }))
 }
 
 /// Where a run stands.
@@ -111,7 +126,7 @@ pub fn status_lines(spec: &ExperimentSpec) -> Result<Vec<String>> {
         .map(|r| {
             let pace = r.s_per_it.map_or(String::new(), |s| {
                 format!(
-                    "  {s:.2} s/it over its last {PACE_WINDOW} iterations: {:.1} h to go",
+                    "  {s:.2} s/it (median of its last {PACE_WINDOW} iterations): {:.1} h to go",
                     s * r.left() as f64 / 3600.0
                 )
             });
@@ -152,20 +167,26 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("metrics.csv");
         let mut csv = String::from("iteration,wall_s,total_env_steps\n");
-        // 1 s per iteration up to 200, then 3 s per iteration
+        // 1 s per iteration up to 150, then 3 s per iteration, with a 1,000 s pause
+        // (a stopped process) before iteration 290
+        let mut wall = 0.0;
         for it in 1..=300usize {
-            let wall = if it <= 200 {
-                it as f64
-            } else {
-                200.0 + 3.0 * (it - 200) as f64
-            };
+            wall += if it <= 150 { 1.0 } else { 3.0 };
+            if it == 290 {
+                wall += 1000.0;
+            }
             csv.push_str(&format!("{it},{wall},{}\n", it * 10));
         }
         std::fs::write(&path, csv).unwrap();
+        // the pause is one slow iteration of 100, not 10 s added to each
         let s = recent_s_per_iteration(&path, 100).unwrap().unwrap();
         assert!((s - 3.0).abs() < 1e-9, "{s}");
-        let s = recent_s_per_iteration(&path, 200).unwrap().unwrap();
-        assert!((s - 2.0).abs() < 1e-9, "{s}");
+        // over 290 iterations, 140 at 1 s and 150 at 3 s: the median step is 3 s
+        let s = recent_s_per_iteration(&path, 290).unwrap().unwrap();
+        assert!((s - 3.0).abs() < 1e-9, "{s}");
+        // the last 299 steps, 149 at 1 s and 150 at 3 s (one of them the pause)
+        let s = recent_s_per_iteration(&path, 299).unwrap().unwrap();
+        assert!((s - 3.0).abs() < 1e-9, "{s}");
         assert_eq!(recent_s_per_iteration(&path, 400).unwrap(), None);
         assert_eq!(
             recent_s_per_iteration(&dir.path().join("none.csv"), 100).unwrap(),
