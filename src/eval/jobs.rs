@@ -9,6 +9,7 @@
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use anyhow::{anyhow, Result};
+use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::learn::mat;
 
@@ -43,6 +44,7 @@ where
     let workers = threads.min(jobs.len());
     let next_job = AtomicUsize::new(0);
     let failed = AtomicBool::new(false);
+    let bar = rollout_bar(jobs.len());
     // one worker: take the next job until none is left or one has failed
     let work = || {
         let mut done = Vec::new();
@@ -54,6 +56,7 @@ where
             if out.is_err() {
                 failed.store(true, Ordering::Relaxed);
             }
+            bar.inc(1);
             done.push((k, out));
         }
         done
@@ -83,6 +86,7 @@ where
             }
         }
     });
+    bar.finish_and_clear();
     if let Some(e) = spawn_error {
         return Err(e);
     }
@@ -91,6 +95,20 @@ where
         .into_iter()
         .map(|slot| slot.unwrap_or_else(|| Err(anyhow!("evaluation stopped early"))))
         .collect()
+}
+
+/// A bar on stderr counting finished rollouts (drawn only on a terminal), so that
+/// an evaluation of many policies shows how far it is and how long is left.
+fn rollout_bar(jobs: usize) -> ProgressBar {
+    let bar = ProgressBar::new(jobs as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} rollouts, {eta} left",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar
 }
 
 #[cfg(test)]
