@@ -6,6 +6,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 
 use super::spec::ExperimentSpec;
+use super::stats;
 use super::{run_state, RunState};
 use crate::runner::metrics::metrics_columns;
 
@@ -35,7 +36,7 @@ pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>>
     else {
         return Ok(None);
     };
-    let mut steps: Vec<f64> = rows[first..]
+    let steps: Vec<f64> = rows[first..]
         .windows(2)
         .filter(|w| w[1].0 > w[0].0)
         .map(|w| (w[1].1 - w[0].1) / (w[1].0 - w[0].0) as f64)
@@ -43,13 +44,7 @@ pub fn recent_s_per_iteration(path: &Path, window: usize) -> Result<Option<f64>>
     if steps.is_empty() {
         return Ok(None);
     }
-    steps.sort_by(f64::total_cmp);
-    let mid = steps.len() / 2;
-    Ok(Some(if steps.len() % 2 == 1 {
-        steps[mid]
-    } else {
-        0.5 * (steps[mid - 1] + steps[mid])
-    }))
+    Ok(Some(stats::quantile(&steps, 0.5)))
 }
 
 /// Where a run stands.
