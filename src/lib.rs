@@ -5,6 +5,8 @@
 //! - [`robot`]: the Aliengo description (joint order, PD control, standing check).
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
+//! - [`progress`]: the one look of the progress bars (training, evaluation).
+//! - [`stats`]: means and interpolated quantiles, one definition for `eval` and `experiment`.
 //! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
 //! - [`memory`]: the process's allocator (large buffers on transparent huge pages).
 //! - `env`: one robot's task (observation groups, reward, risk, commands, terrain and its
@@ -66,6 +68,8 @@ pub mod sim;
 pub mod fsio;
 pub mod hash;
 pub mod learn;
+pub mod progress;
+pub mod stats;
 
 #[cfg(feature = "sim")]
 pub mod cli;

@@ -9,7 +9,7 @@
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use anyhow::{anyhow, Result};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use crate::learn::mat;
 
@@ -100,15 +100,7 @@ where
 /// A bar on stderr counting finished rollouts (drawn only on a terminal), so that
 /// an evaluation of many policies shows how far it is and how long is left.
 fn rollout_bar(jobs: usize) -> ProgressBar {
-    let bar = ProgressBar::new(jobs as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:30}] {pos}/{len} rollouts, {eta} left",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
-    bar
+    crate::progress::bar(jobs as u64, "{pos}/{len} rollouts, {eta} left")
 }
 
 #[cfg(test)]

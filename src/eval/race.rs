@@ -17,10 +17,11 @@ use serde::{Deserialize, Serialize};
 use super::jobs::run_jobs;
 use super::policy::Actor;
 use super::report::{csv_line, markdown_table};
-use super::rollout::{mean, quantile, NamedPolicy, ScenarioRun};
+use super::rollout::{NamedPolicy, ScenarioRun};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
 use crate::env::{EnvConfig, EpisodeEnd, ObsGroup, ACT_DIM};
 use crate::learn::relayout_rows;
+use crate::stats::{mean, quantile};
 
 /// The meta controller's settings.
 #[derive(Debug, Clone, PartialEq, Serialize)]

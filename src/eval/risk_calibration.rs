@@ -7,11 +7,11 @@
 use anyhow::{ensure, Result};
 use rand::SeedableRng;
 
-use super::rollout::quantile;
 use crate::config::TrainConfig;
 use crate::env::risk::RISK_TERMS;
 use crate::learn::Learner;
 use crate::robot::NUM_JOINTS;
+use crate::stats::quantile;
 
 /// The joint terms calibrated, by their names in [`RISK_TERMS`].
 pub const CALIBRATED_TERMS: [&str; 3] = ["joint_velocity", "joint_acceleration", "joint_torque"];

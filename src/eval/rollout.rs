@@ -282,42 +282,9 @@ fn progress_along_command_mps(env: &Env, command: [f64; 3]) -> f64 {
     (v[0] * command[0] + v[1] * command[1]) / norm
 }
 
-/// Linear-interpolation quantile (numpy's default) of `values` at `q` in [0, 1];
-/// NaN for no values.
-pub fn quantile(values: &[f64], q: f64) -> f64 {
-    if values.is_empty() {
-        return f64::NAN;
-    }
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = pos.ceil() as usize;
-    v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
-}
-
-/// Mean of `values` (NaN for none).
-pub fn mean(values: &[f64]) -> f64 {
-    if values.is_empty() {
-        f64::NAN
-    } else {
-        values.iter().sum::<f64>() / values.len() as f64
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn quantiles_interpolate_like_numpy() {
-        let v = [4.0, 1.0, 3.0, 2.0];
-        assert_eq!(quantile(&v, 0.0), 1.0);
-        assert_eq!(quantile(&v, 1.0), 4.0);
-        assert!((quantile(&v, 0.5) - 2.5).abs() < 1e-12);
-        assert!((quantile(&v, 0.25) - 1.75).abs() < 1e-12);
-        assert!(quantile(&[], 0.5).is_nan());
-    }
 
     #[test]
     fn policy_args_split_on_the_first_equals() {

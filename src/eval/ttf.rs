@@ -12,8 +12,9 @@ use serde::Serialize;
 
 use super::jobs::run_jobs;
 use super::report::{csv_line, markdown_table};
-use super::rollout::{mean, run_first_episodes, FirstEpisode, NamedPolicy};
+use super::rollout::{run_first_episodes, FirstEpisode, NamedPolicy};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
+use crate::stats::mean;
 
 /// What to evaluate.
 #[derive(Debug, Clone, Serialize)]

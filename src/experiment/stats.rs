@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::hash::{fnv1a64_from, FNV1A64_OFFSET};
+pub use crate::stats::{mean, percentile, quantile};
 
 /// A point estimate with its confidence interval.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -119,34 +120,6 @@ pub fn bootstrap_strata<T: Clone>(
     }
 }
 
-/// Linear interpolation between order statistics of sorted `v`.
-pub fn percentile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let pos = q.clamp(0.0, 1.0) * (sorted.len() - 1) as f64;
-    let (i, frac) = (pos.floor() as usize, pos.fract());
-    if i + 1 < sorted.len() {
-        sorted[i] * (1.0 - frac) + sorted[i + 1] * frac
-    } else {
-        sorted[i]
-    }
-}
-
-pub fn mean(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.iter().sum::<f64>() / v.len() as f64
-}
-
-/// Quantile `q` of unsorted values.
-pub fn quantile(v: &[f64], q: f64) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    percentile(&s, q)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -187,13 +160,5 @@ mod tests {
         let b = vec![10.0; 40];
         let e = bootstrap_strata(&[a, b], |s| (mean(&s[0]) + mean(&s[1])) / 2.0, 200, 0.95, 1);
         assert_eq!((e.lo, e.value, e.hi), (5.5, 5.5, 5.5));
-    }
-
-    #[test]
-    fn percentiles_interpolate() {
-        let v = [1.0, 2.0, 3.0, 4.0];
-        assert_eq!(percentile(&v, 0.0), 1.0);
-        assert_eq!(percentile(&v, 1.0), 4.0);
-        assert_eq!(percentile(&v, 0.5), 2.5);
     }
 }

@@ -1,20 +1,15 @@
 //! What a training run says while it runs: the progress bar, the status line
 //! of an iteration and where its time went.
 
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use super::metrics::{CollectTimes, IterationRow};
 use crate::learn::UpdateTimes;
 
 /// The bar of a run from iteration `start` to `end`.
 pub(super) fn progress_bar(start: usize, end: usize) -> ProgressBar {
-    let bar = ProgressBar::new(end as u64);
+    let bar = crate::progress::bar(end as u64, "it {pos}/{len} {msg}");
     bar.set_position(start as u64);
-    bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] it {pos}/{len} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
     bar
 }
 

@@ -243,7 +243,7 @@ impl ExperimentResults {
             return;
         }
         let _ = writeln!(s, "## Each method over its training seeds\n");
-        let _ = writeln!(s, "Runs that differ only in their training seed are one method here. Its number weights every seed equally (the mean of the seeds' means; the race: quantiles of the seeds' returns pooled) with a 95% bootstrap that resamples robots within each seed; each seed's own value follows in braces, because with two seeds the spread between them is the honest measure of what another seed would do, and no interval over robots covers it.\n");
+        let _ = writeln!(s, "Runs that differ only in their training seed are one method here. Its number weights every seed equally (the mean of the seeds' means; the race: quantiles of the seeds' returns pooled) with a 95% bootstrap that resamples robots within each seed; each seed's own value follows in braces, because with two or three seeds the spread between them is the honest measure of what another seed would do, and no interval over robots covers it.\n");
         let loads = Self::methods_of(m.ttf.iter().map(|r| &r.load));
         let labels = Self::methods_of(m.ttf.iter().map(|r| &r.method.label));
         write_ttf_table(
