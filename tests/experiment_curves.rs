@@ -161,6 +161,15 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
     );
     assert!(md.contains("## From checkpoint to checkpoint"), "{md}");
     assert!(md.contains("Strict: any contact"), "{md}");
+    // the curves are drawn in the README and listed first among the figures
+    assert!(
+        md.contains(
+            "![Time to Fall against severity (mean over table I's cells)](figures/curve_ttf.svg)"
+        ),
+        "{md}"
+    );
+    let figures = &md[md.find("## Figures").unwrap()..];
+    assert!(figures.find("curve_ttf.svg").unwrap() < figures.find("(figures/ttf.svg)").unwrap());
     for fig in ["curve_ttf.svg", "curve_platform.svg", "curve_race.svg"] {
         let svg = std::fs::read_to_string(out.join("figures").join(fig)).unwrap();
         assert!(svg.starts_with("<svg") && svg.contains("rung 4"), "{fig}");

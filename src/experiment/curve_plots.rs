@@ -54,7 +54,11 @@ fn curve_figure(
     let methods = unique(points.iter().map(|p| p.policy.clone()));
     let rung_max = points.iter().map(|p| p.severity).max().unwrap_or(0) as f64;
     let (lo, hi) = points.iter().fold((0.0f64, f64::MIN), |(lo, hi), p| {
-        (lo.min(p.estimate.lo), hi.max(p.estimate.hi))
+        let seeds = p.seeds.iter().copied();
+        (
+            seeds.clone().fold(lo.min(p.estimate.lo), f64::min),
+            seeds.fold(hi.max(p.estimate.hi), f64::max),
+        )
     });
     let y = if y_top > 0.0 {
         0.0..y_top
@@ -104,6 +108,13 @@ fn curve_figure(
                 PathElement::new(vec![(x, p.estimate.lo), (x, p.estimate.hi)], color)
             }))
             .map_err(err)?;
+        // each training seed's own number: a ring beside the method's point
+        chart
+            .draw_series(mine.iter().flat_map(|p| {
+                let x = p.severity as f64 + dx;
+                p.seeds.iter().map(move |&v| Circle::new((x, v), 3, color))
+            }))
+            .map_err(err)?;
         let paper = r
             .curve_paper
             .iter()
@@ -123,6 +134,7 @@ fn curve_figure(
         &legend,
         &methods,
         r.curve_paper.iter().any(|(b, _, _)| b == benchmark),
+        points.iter().any(|p| !p.seeds.is_empty()),
     )?;
     root.present().map_err(err)
 }
@@ -132,6 +144,7 @@ fn draw_legend<DB: DrawingBackend>(
     area: &DrawingArea<DB, plotters::coord::Shift>,
     methods: &[String],
     with_paper: bool,
+    with_seeds: bool,
 ) -> Result<()>
 where
     DB::ErrorType: 'static,
@@ -162,19 +175,33 @@ where
             BLACK.stroke_width(2),
         ))
         .map_err(err)?;
+        for (k, line) in ["the paper's number at rung 0", "(in the method's colour)"]
+            .iter()
+            .enumerate()
+        {
+            area.draw(&Text::new(
+                *line,
+                (48, y - 8 + 18 * k as i32),
+                style.clone(),
+            ))
+            .map_err(err)?;
+        }
+    }
+    let note = ("sans-serif", 12).into_font().color(&BLACK.mix(0.7));
+    area.draw(&Text::new(
+        "whiskers: 95% bootstrap over robots",
+        (10, y + 42),
+        note.clone(),
+    ))
+    .map_err(err)?;
+    if with_seeds {
         area.draw(&Text::new(
-            "the paper's number at rung 0 (method's colour)",
-            (48, y - 8),
-            style.clone(),
+            "rings: each training seed's own number",
+            (10, y + 60),
+            note,
         ))
         .map_err(err)?;
     }
-    area.draw(&Text::new(
-        "whiskers: 95% bootstrap over robots",
-        (10, y + 24),
-        ("sans-serif", 12).into_font().color(&BLACK.mix(0.7)),
-    ))
-    .map_err(err)?;
     Ok(())
 }
 

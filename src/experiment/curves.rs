@@ -7,6 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::pooled::show_with_seeds;
 use super::stats::{bootstrap_strata, cell_seed, mean, quantile, Estimate};
 use crate::eval::{PlatformReport, RaceReport, TtfReport};
 
@@ -20,6 +21,10 @@ pub struct CurvePoint {
     pub estimate: Estimate,
     /// Robots (or race episodes) behind the point.
     pub units: usize,
+    /// Each training seed's own number, when the point pools a method's seeds (the
+    /// spread that no interval over robots covers); empty for a single policy.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub seeds: Vec<f64>,
 }
 
 /// The benchmark and metric names a results file may hold, as the `&'static str`
@@ -52,6 +57,8 @@ struct CurvePointFile {
     severity: usize,
     estimate: Estimate,
     units: usize,
+    #[serde(default)]
+    seeds: Vec<f64>,
 }
 
 impl<'de> Deserialize<'de> for CurvePoint {
@@ -65,6 +72,7 @@ impl<'de> Deserialize<'de> for CurvePoint {
             severity: f.severity,
             estimate: f.estimate,
             units: f.units,
+            seeds: f.seeds,
         })
     }
 }
@@ -155,7 +163,27 @@ pub fn ttf_point(
 ) -> Option<CurvePoint> {
     let strata = ttf_strata(report, policies, strict);
     let metric = if strict { "strict_ttf" } else { "ttf" };
+    let seeds = per_seed(policies, |p| ttf_strata(report, p, strict), mean_of_means);
     point(("ttf", metric), label, severity, &strata, mean_of_means, r)
+        .map(|p| CurvePoint { seeds, ..p })
+}
+
+/// `statistic` of each of `policies` alone (a method's seeds), from `strata_of` one
+/// policy; empty for a single policy, and a policy with no robots is skipped.
+fn per_seed(
+    policies: &[String],
+    strata_of: impl Fn(&[String]) -> Vec<Vec<f64>>,
+    statistic: impl Fn(&[Vec<f64>]) -> f64,
+) -> Vec<f64> {
+    if policies.len() < 2 {
+        return Vec::new();
+    }
+    policies
+        .iter()
+        .map(|p| strata_of(std::slice::from_ref(p)))
+        .filter(|s| !s.is_empty())
+        .map(|s| statistic(&s))
+        .collect()
 }
 
 /// The point of `label` at `severity` from its robots `strata` and `statistic`,
@@ -178,6 +206,7 @@ fn point(
         policy: label.to_string(),
         severity,
         units: strata.iter().map(Vec::len).sum(),
+        seeds: Vec::new(),
         estimate: bootstrap_strata(
             strata,
             statistic,
@@ -198,6 +227,7 @@ pub fn platform_point(
     r: Resampling,
 ) -> Option<CurvePoint> {
     let strata = platform_strata(report, policies);
+    let seeds = per_seed(policies, |p| platform_strata(report, p), mean_of_means);
     point(
         ("platform", "success_pct"),
         label,
@@ -206,6 +236,7 @@ pub fn platform_point(
         mean_of_means,
         r,
     )
+    .map(|p| CurvePoint { seeds, ..p })
 }
 
 /// The 0.25 quantile of the returns of the race rows `policies` pooled (as the
@@ -218,6 +249,7 @@ pub fn race_point(
     r: Resampling,
 ) -> Option<CurvePoint> {
     let strata = race_strata(report, policies);
+    let seeds = per_seed(policies, |p| race_strata(report, p), q25_pooled);
     point(
         ("race", "return_q25"),
         label,
@@ -226,26 +258,31 @@ pub fn race_point(
         q25_pooled,
         r,
     )
+    .map(|p| CurvePoint { seeds, ..p })
 }
 
-/// `benchmark,metric,policy,severity,value,lo,hi,units` rows.
+/// `benchmark,metric,policy,severity,value,lo,hi,units,seeds` rows (`seeds`: each
+/// training seed's number, `;`-separated, empty for a single policy).
 pub fn curve_csv(points: &[CurvePoint]) -> String {
-    let mut s = String::from("benchmark,metric,policy,severity,value,lo,hi,units\n");
+    let mut s = String::from("benchmark,metric,policy,severity,value,lo,hi,units,seeds\n");
     for p in points {
+        let seeds: Vec<String> = p.seeds.iter().map(|v| format!("{v:.4}")).collect();
         s.push_str(&format!(
-            "{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{}\n",
             p.benchmark,
             p.metric,
             p.policy,
             p.severity,
             p.estimate.csv(4),
-            p.units
+            p.units,
+            seeds.join(";")
         ));
     }
     s
 }
 
-/// A markdown table: a row per policy, a column per rung.
+/// A markdown table: a row per policy, a column per rung (each seed's number in braces
+/// after a method's).
 pub fn curve_markdown(points: &[CurvePoint], digits: usize) -> String {
     let mut rungs: Vec<usize> = points.iter().map(|p| p.severity).collect();
     rungs.sort_unstable();
@@ -267,7 +304,10 @@ pub fn curve_markdown(points: &[CurvePoint], digits: usize) -> String {
         s.push_str(&format!("| {name} |"));
         for r in &rungs {
             match points.iter().find(|p| p.policy == name && p.severity == *r) {
-                Some(p) => s.push_str(&format!(" {} |", p.estimate.show(digits))),
+                Some(p) => s.push_str(&format!(
+                    " {} |",
+                    show_with_seeds(&p.estimate, &p.seeds, digits)
+                )),
                 None => s.push_str(" - |"),
             }
         }
@@ -284,5 +324,46 @@ mod tests {
     fn cells_weigh_equally_whatever_their_size() {
         let strata = vec![vec![1.0, 1.0, 1.0, 1.0], vec![0.0]];
         assert_eq!(mean_of_means(&strata), 0.5);
+    }
+
+    #[test]
+    fn a_methods_point_carries_each_seeds_own_number() {
+        // two seeds' robots, a stratum per (seed, cell): seed a 1.0 in both cells,
+        // seed b 0.0 and 0.5
+        let strata_of = |ps: &[String]| -> Vec<Vec<f64>> {
+            ps.iter()
+                .flat_map(|p| match p.as_str() {
+                    "a" => vec![vec![1.0, 1.0], vec![1.0]],
+                    _ => vec![vec![0.0], vec![0.5, 0.5]],
+                })
+                .collect()
+        };
+        let both = ["a".to_string(), "b".to_string()];
+        assert_eq!(per_seed(&both, strata_of, mean_of_means), vec![1.0, 0.25]);
+        assert!(per_seed(&both[..1], strata_of, mean_of_means).is_empty());
+        let p = CurvePoint {
+            benchmark: "ttf",
+            metric: "ttf",
+            policy: "M".into(),
+            severity: 2,
+            estimate: Estimate {
+                value: 0.625,
+                lo: 0.5,
+                hi: 0.75,
+            },
+            units: 6,
+            seeds: vec![1.0, 0.25],
+        };
+        assert!(curve_markdown(std::slice::from_ref(&p), 3)
+            .contains("| M | 0.625 [0.500, 0.750] {1.000, 0.250} |"));
+        assert!(curve_csv(std::slice::from_ref(&p)).ends_with(",6,1.0000;0.2500\n"));
+        // a results file keeps them, and one written before them reads as no seeds
+        let back: CurvePoint = serde_json::from_str(&serde_json::to_string(&p).unwrap()).unwrap();
+        assert_eq!(back, p);
+        let old = r#"{"benchmark":"ttf","metric":"ttf","policy":"M","severity":2,"estimate":{"value":0.6,"lo":0.5,"hi":0.7},"units":6}"#;
+        assert!(serde_json::from_str::<CurvePoint>(old)
+            .unwrap()
+            .seeds
+            .is_empty());
     }
 }

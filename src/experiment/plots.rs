@@ -291,7 +291,7 @@ fn race_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     root.present().map_err(err)
 }
 
-/// One panel per meta controller, stacked.
+/// One panel per meta controller, stacked (drawn only when there is one).
 fn race_iqr_figure(r: &ExperimentResults, path: &Path) -> Result<()> {
     let root = SVGBackend::new(path, (820, 380 * r.meta.len().max(1) as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
@@ -378,6 +378,8 @@ pub fn write_all(r: &ExperimentResults, dir: &Path) -> Result<()> {
     ttf_figure(r, &dir.join("ttf.svg"))?;
     platform_figure(r, &dir.join("platform.svg"))?;
     race_figure(r, &dir.join("race.svg"))?;
-    race_iqr_figure(r, &dir.join("race_iqr.svg"))?;
+    if !r.meta.is_empty() {
+        race_iqr_figure(r, &dir.join("race_iqr.svg"))?;
+    }
     super::curve_plots::write_curves(r, dir)
 }

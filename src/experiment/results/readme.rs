@@ -4,6 +4,7 @@ use std::fmt::Write as _;
 
 use super::{plots_list, write_ttf_table, ExperimentResults, TrackingEstimates};
 use crate::experiment::contrasts::contrasts_markdown;
+use crate::experiment::curve_plots::CURVE_FIGURES;
 use crate::experiment::curves::{curve_markdown, CurvePoint};
 use crate::experiment::pooled::show_with_seeds;
 use crate::experiment::stats::Estimate;
@@ -51,7 +52,12 @@ impl ExperimentResults {
             "## Robustness curves
 "
         );
-        let _ = writeln!(s, "Each method (seeds pooled with equal weight) on every rung of the severity ladder; rung 0 is the paper's protocol (the tables below), each higher rung harder on every axis. 95% bootstrap over robots in brackets; `figures/curve_<benchmark>.svg` draws them, `curves.csv` lists them.
+        let braces = if self.curves.iter().any(|p| !p.seeds.is_empty()) {
+            ", each training seed's own number in braces"
+        } else {
+            ""
+        };
+        let _ = writeln!(s, "Each method (seeds pooled with equal weight) on every rung of the severity ladder; rung 0 is the paper's protocol (the tables below), each higher rung harder on every axis. 95% bootstrap over robots in brackets{braces}; `figures/curve_<benchmark>.svg` draws them, `curves.csv` lists them.
 ");
         let _ = writeln!(s, "{}", ladder.markdown(&rungs));
         for (metric, title, digits) in [
@@ -72,6 +78,9 @@ impl ExperimentResults {
                 .collect();
             if !these.is_empty() {
                 let _ = writeln!(s, "### {title}\n\n{}", curve_markdown(&these, digits));
+            }
+            if let Some(f) = CURVE_FIGURES.iter().find(|f| f.1 == metric) {
+                let _ = writeln!(s, "![{}](figures/curve_{}.svg)\n", f.2, f.0);
             }
         }
         let _ = writeln!(s, "{}\n", crate::eval::FALL_DEFINITION);
@@ -109,7 +118,7 @@ impl ExperimentResults {
         self.methods_markdown(&mut s);
         self.per_run_markdown(&mut s);
         let _ = writeln!(s, "\n## Figures\n");
-        for (f, what) in plots_list() {
+        for (f, what) in plots_list(self) {
             let _ = writeln!(s, "- [{f}](figures/{f}): {what}");
         }
         s
