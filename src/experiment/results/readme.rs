@@ -76,9 +76,10 @@ impl ExperimentResults {
                 .filter(|p| p.metric == metric)
                 .cloned()
                 .collect();
-            if !these.is_empty() {
-                let _ = writeln!(s, "### {title}\n\n{}", curve_markdown(&these, digits));
+            if these.is_empty() {
+                continue;
             }
+            let _ = writeln!(s, "### {title}\n\n{}", curve_markdown(&these, digits));
             if let Some(f) = CURVE_FIGURES.iter().find(|f| f.1 == metric) {
                 let _ = writeln!(s, "![{}](figures/curve_{}.svg)\n", f.2, f.0);
             }
