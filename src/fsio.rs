@@ -23,6 +23,12 @@ pub fn tmp_path(path: &Path) -> PathBuf {
 /// the directory). The parent directory must exist. On failure the temp file
 /// is removed and `path` is unchanged.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic_io(path, bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// [`write_atomic`] with the bare I/O error, for callers that name the file
+/// themselves.
+pub fn write_atomic_io(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let tmp = tmp_path(path);
     let write = || -> std::io::Result<()> {
         let mut f = std::fs::File::create(&tmp)?;
@@ -37,10 +43,16 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         }
         Ok(())
     };
-    write().with_context(|| {
+    write().inspect_err(|_| {
+        // a failed write must not leave its temp file filling the disk
         let _ = std::fs::remove_file(&tmp);
-        format!("writing {}", path.display())
     })
+}
+
+/// Copies `from` over `to` as [`write_atomic`] writes.
+pub fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
+    let bytes = std::fs::read(from).with_context(|| format!("reading {}", from.display()))?;
+    write_atomic(to, &bytes)
 }
 
 /// Files of a run directory rall writes through a temp file.

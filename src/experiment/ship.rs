@@ -24,13 +24,7 @@ pub(super) const SHIPPED_FILES: [&str; 6] = [
     selection::SELECTED,
 ];
 
-/// Copies `from` to `to` through a temp file and a rename.
-pub(super) fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
-    let tmp = to.with_extension("copy.tmp");
-    std::fs::copy(from, &tmp)
-        .with_context(|| format!("copying {} to {}", from.display(), tmp.display()))?;
-    std::fs::rename(&tmp, to).with_context(|| format!("writing {}", to.display()))
-}
+pub(super) use crate::fsio::copy_atomic;
 
 /// Writes `text` to `path` through a temp file and a rename.
 pub(super) fn write_atomic(path: &Path, text: &str) -> Result<()> {
@@ -211,6 +205,6 @@ mod tests {
         assert_eq!(read("config.toml"), "new config");
         assert_eq!(read("metrics.csv"), "new metrics");
         assert!(!dst.join("adaptation.csv").exists());
-        assert!(!dst.join("adaptation.copy.tmp").exists());
+        assert!(!dst.join("adaptation.csv.tmp").exists());
     }
 }

@@ -14,8 +14,7 @@ use anyhow::{bail, Context, Result};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// One named `f32` tensor of the learner state (row-major).
 #[derive(Clone, Debug, PartialEq)]
@@ -29,16 +28,6 @@ pub struct NamedTensor {
 pub const CHECKSUM_PREFIX: &str = "sha256.";
 /// The checksum key of the metadata itself.
 const METADATA_CHECKSUM: &str = "sha256.__metadata__";
-
-/// Temp-file suffix of checkpoint writes (the runner removes only these).
-pub const TMP_SUFFIX: &str = ".tmp";
-
-/// `<path>.tmp`: where a checkpoint is written before its rename.
-pub fn tmp_path(path: &Path) -> PathBuf {
-    let mut s = path.as_os_str().to_owned();
-    s.push(TMP_SUFFIX);
-    PathBuf::from(s)
-}
 
 /// A checkpoint read back: `f32` tensors and byte tensors in file order, the
 /// metadata without its checksum keys, and whether checksums were verified.
@@ -102,7 +91,8 @@ pub fn save_checkpoint_with(
 ) -> Result<()> {
     let buf = serialize_checkpoint(tensors, blobs, metadata)
         .with_context(|| format!("serialising checkpoint {}", path.display()))?;
-    write_file_atomic(path, &buf).with_context(|| format!("writing checkpoint {}", path.display()))
+    crate::fsio::write_atomic_io(path, &buf)
+        .with_context(|| format!("writing checkpoint {}", path.display()))
 }
 
 /// The file's bytes: tensors, blobs and metadata with fresh checksums (any
@@ -168,28 +158,6 @@ fn canonical_header(mut buf: Vec<u8>) -> Result<Vec<u8>> {
     buf[8..8 + text.len()].copy_from_slice(text.as_bytes());
     buf[8 + text.len()..8 + n].fill(b' ');
     Ok(buf)
-}
-
-/// `<path>.tmp`, fsync, rename, fsync of the directory (best effort); a failed
-/// write removes its temp file.
-fn write_file_atomic(path: &Path, buf: &[u8]) -> std::io::Result<()> {
-    let tmp = tmp_path(path);
-    let write = || -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(buf)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)?;
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            if let Ok(d) = std::fs::File::open(dir) {
-                let _ = d.sync_all();
-            }
-        }
-        Ok(())
-    };
-    write().inspect_err(|_| {
-        // a failed write must not leave its temp file filling the disk
-        let _ = std::fs::remove_file(&tmp);
-    })
 }
 
 /// Reads a checkpoint written by [`save_checkpoint`]: tensors (in file order) and
