@@ -221,9 +221,9 @@ pub fn select_as(
         );
     }
     if choice == Choice::FinalPolicy {
-        super::ship::copy_atomic(&paths[k], &dir.join(SELECTED))?;
+        crate::fsio::copy_atomic(&paths[k], &dir.join(SELECTED))?;
     }
-    super::ship::write_atomic(&dir.join(choice.csv()), &csv)?;
+    crate::fsio::write_atomic(&dir.join(choice.csv()), csv.as_bytes())?;
     Ok(found[k])
 }
 

@@ -11,6 +11,7 @@ use super::final_policy::selected_in;
 use super::spec::{self, ExperimentSpec};
 use super::{kcheck, selection};
 use super::{run_state, run_target};
+use crate::fsio::copy_atomic;
 use crate::runner::policy_file::{is_actor_only, save_actor_only};
 use crate::runner::{RunDir, LATEST};
 
@@ -23,13 +24,6 @@ pub(super) const SHIPPED_FILES: [&str; 6] = [
     selection::SELECTION_CSV,
     selection::SELECTED,
 ];
-
-pub(super) use crate::fsio::copy_atomic;
-
-/// Writes `text` to `path` through a temp file and a rename.
-pub(super) fn write_atomic(path: &Path, text: &str) -> Result<()> {
-    crate::fsio::write_atomic(path, text.as_bytes())
-}
 
 /// Whether a run directory holds checkpoints of its own (else its shipped copy
 /// stands in for it).
