@@ -16,8 +16,11 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("drawing a curve figure: {e}")
 }
 
-/// The curves drawn: (benchmark, metric, title, y axis, y range top or 0 for the data's).
-pub const CURVE_FIGURES: [(&str, &str, &str, &str, f64); 3] = [
+/// A curve figure: (benchmark, metric, title, y axis, y range top or 0 for the data's).
+pub type CurveFigure = (&'static str, &'static str, &'static str, &'static str, f64);
+
+/// The curves drawn.
+pub const CURVE_FIGURES: [CurveFigure; 3] = [
     (
         "ttf",
         "ttf",
@@ -42,9 +45,9 @@ pub const CURVE_FIGURES: [(&str, &str, &str, &str, f64); 3] = [
 ];
 
 /// One figure; nothing is written when the benchmark has no points.
-fn curve_figure(
+pub(super) fn curve_figure(
     r: &ExperimentResults,
-    (benchmark, metric, title, y_desc, y_top): (&str, &str, &str, &str, f64),
+    &(benchmark, metric, title, y_desc, y_top): &CurveFigure,
     path: &Path,
 ) -> Result<()> {
     let points: Vec<&CurvePoint> = r.curves.iter().filter(|p| p.metric == metric).collect();
@@ -201,14 +204,6 @@ where
             note,
         ))
         .map_err(err)?;
-    }
-    Ok(())
-}
-
-/// Draws `curve_<benchmark>.svg` for every benchmark with curve points.
-pub fn write_curves(r: &ExperimentResults, dir: &Path) -> Result<()> {
-    for f in CURVE_FIGURES {
-        curve_figure(r, f, &dir.join(format!("curve_{}.svg", f.0)))?;
     }
     Ok(())
 }

@@ -5,6 +5,7 @@ use std::path::Path;
 use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 
+use super::curve_plots::{CurveFigure, CURVE_FIGURES};
 use super::results::ExperimentResults;
 use super::stats::Estimate;
 
@@ -373,13 +374,70 @@ pub(super) fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
     out
 }
 
-/// Draws every figure of [`super::results::plots_list`] into `dir`.
-pub fn write_all(r: &ExperimentResults, dir: &Path) -> Result<()> {
-    ttf_figure(r, &dir.join("ttf.svg"))?;
-    platform_figure(r, &dir.join("platform.svg"))?;
-    race_figure(r, &dir.join("race.svg"))?;
-    if !r.meta.is_empty() {
-        race_iqr_figure(r, &dir.join("race_iqr.svg"))?;
+/// One figure of an experiment's results.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Figure {
+    /// A robustness curve: an entry of [`CURVE_FIGURES`].
+    Curve(&'static CurveFigure),
+    Ttf,
+    Platform,
+    Race,
+    RaceIqr,
+}
+
+impl Figure {
+    pub fn file_name(&self) -> String {
+        match self {
+            Figure::Curve(c) => format!("curve_{}.svg", c.0),
+            Figure::Ttf => "ttf.svg".into(),
+            Figure::Platform => "platform.svg".into(),
+            Figure::Race => "race.svg".into(),
+            Figure::RaceIqr => "race_iqr.svg".into(),
+        }
     }
-    super::curve_plots::write_curves(r, dir)
+
+    /// What the figure shows, as the results' README lists it.
+    pub fn shows(&self) -> &'static str {
+        match self {
+            Figure::Curve(c) => c.2,
+            Figure::Ttf => "TTF per cell and method, seeds pooled, with intervals and a dot per seed (table I)",
+            Figure::Platform => "platform success per height and method, seeds pooled, a dot per seed (table II)",
+            Figure::Race => "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller",
+            Figure::RaceIqr => "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)",
+        }
+    }
+
+    fn draw(&self, r: &ExperimentResults, path: &Path) -> Result<()> {
+        match self {
+            Figure::Curve(c) => super::curve_plots::curve_figure(r, c, path),
+            Figure::Ttf => ttf_figure(r, path),
+            Figure::Platform => platform_figure(r, path),
+            Figure::Race => race_figure(r, path),
+            Figure::RaceIqr => race_iqr_figure(r, path),
+        }
+    }
+}
+
+/// The figures of `r`, in the order the README lists them: the robustness
+/// curves first (one per benchmark with points), then the rung-0 tables'
+/// figures; the IQR figure only when the experiment has a meta controller.
+/// The one list both [`write_all`] and the README read.
+pub fn figures(r: &ExperimentResults) -> Vec<Figure> {
+    let curves = CURVE_FIGURES
+        .iter()
+        .filter(|c| r.curves.iter().any(|p| p.metric == c.1))
+        .map(Figure::Curve);
+    let meta = (!r.meta.is_empty()).then_some(Figure::RaceIqr);
+    curves
+        .chain([Figure::Ttf, Figure::Platform, Figure::Race])
+        .chain(meta)
+        .collect()
+}
+
+/// Draws every figure of [`figures`] into `dir`.
+pub fn write_all(r: &ExperimentResults, dir: &Path) -> Result<()> {
+    for f in figures(r) {
+        f.draw(r, &dir.join(f.file_name()))?;
+    }
+    Ok(())
 }

@@ -319,26 +319,6 @@ fn write_ttf_table(
     }
 }
 
-/// The figures [`super::plots::write_all`] draws for `r`, file name and what it shows:
-/// the robustness curves first (one per benchmark with points), then the rung-0
-/// tables' figures; the IQR figure only when the experiment has a meta controller.
-pub fn plots_list(r: &ExperimentResults) -> Vec<(String, &'static str)> {
-    let mut list: Vec<(String, &'static str)> = super::curve_plots::CURVE_FIGURES
-        .iter()
-        .filter(|f| r.curves.iter().any(|p| p.metric == f.1))
-        .map(|f| (format!("curve_{}.svg", f.0), f.2))
-        .collect();
-    list.extend([
-        ("ttf.svg".to_string(), "TTF per cell and method, seeds pooled, with intervals and a dot per seed (table I)"),
-        ("platform.svg".to_string(), "platform success per height and method, seeds pooled, a dot per seed (table II)"),
-        ("race.svg".to_string(), "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller"),
-    ]);
-    if !r.meta.is_empty() {
-        list.push(("race_iqr.svg".to_string(), "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)"));
-    }
-    list
-}
-
 /// The bootstrap interval of `stat` over `units`, seeded by the cell's name.
 fn cell_estimate(
     spec: &ExperimentSpec,

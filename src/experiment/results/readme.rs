@@ -2,7 +2,7 @@
 
 use std::fmt::Write as _;
 
-use super::{plots_list, write_ttf_table, ExperimentResults, TrackingEstimates};
+use super::{write_ttf_table, ExperimentResults, TrackingEstimates};
 use crate::experiment::contrasts::contrasts_markdown;
 use crate::experiment::curve_plots::CURVE_FIGURES;
 use crate::experiment::curves::{curve_markdown, CurvePoint};
@@ -119,7 +119,8 @@ impl ExperimentResults {
         self.methods_markdown(&mut s);
         self.per_run_markdown(&mut s);
         let _ = writeln!(s, "\n## Figures\n");
-        for (f, what) in plots_list(self) {
+        for f in crate::experiment::plots::figures(self) {
+            let (f, what) = (f.file_name(), f.shows());
             let _ = writeln!(s, "- [{f}](figures/{f}): {what}");
         }
         s
