@@ -11,9 +11,16 @@ const SHIM: &str = "src/sim/shim.c";
 
 const INSTALL_HINT: &str = "install them with: sudo apt-get install -y libmujoco-dev libclang-dev";
 
+/// What decides an evaluation rollout's numbers: hashed into the rollout
+/// cache's key (`src/eval/cache.rs`). The experiment and command-line code only
+/// arrange rollouts (their settings are in each key), so they are left out.
+const ROLLOUT_SOURCES: [&str; 3] = ["src", "mjcf", "Cargo.lock"];
+const NOT_ROLLOUT_SOURCES: [&str; 3] = ["src/experiment", "src/cli", "src/viz"];
+
 fn main() {
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-env-changed=MUJOCO_INCLUDE_DIR");
+    rollout_fingerprint();
     if env::var_os("CARGO_FEATURE_SIM").is_none() {
         return; // learner-only build: no MuJoCo needed
     }
@@ -59,6 +66,46 @@ fn main() {
     let out = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR")).join("mujoco_ffi.rs");
     if let Err(e) = bindings.write_to_file(&out) {
         fail(&format!("cannot write {}: {e}", out.display()));
+    }
+}
+
+/// Sets `RALL_ROLLOUT_FINGERPRINT`: FNV-1a (64 bit) over the paths and bytes
+/// of every file of [`ROLLOUT_SOURCES`] outside [`NOT_ROLLOUT_SOURCES`], in
+/// path order.
+fn rollout_fingerprint() {
+    let mut files = Vec::new();
+    for root in ROLLOUT_SOURCES {
+        println!("cargo:rerun-if-changed={root}");
+        collect_files(Path::new(root), &mut files);
+    }
+    files.retain(|f| !NOT_ROLLOUT_SOURCES.iter().any(|n| f.starts_with(n)));
+    files.sort();
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for f in &files {
+        eat(f.to_string_lossy().as_bytes());
+        match std::fs::read(f) {
+            Ok(bytes) => eat(&bytes),
+            Err(e) => fail(&format!("cannot read {}: {e}", f.display())),
+        }
+    }
+    println!("cargo:rustc-env=RALL_ROLLOUT_FINGERPRINT={h:016x}");
+}
+
+fn collect_files(path: &Path, out: &mut Vec<PathBuf>) {
+    if path.is_dir() {
+        let Ok(entries) = std::fs::read_dir(path) else {
+            fail(&format!("cannot list {}", path.display()))
+        };
+        for e in entries.flatten() {
+            collect_files(&e.path(), out);
+        }
+    } else if path.is_file() {
+        out.push(path.to_path_buf());
     }
 }
 

@@ -152,6 +152,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         train: true,
         evaluate: true,
         allow_unfinished: false,
+        fresh_rollouts: false,
     };
     run_experiment(&spec, &all, stop.clone()).unwrap();
     for r in &spec.runs {
@@ -165,10 +166,15 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
             .unwrap()
     };
     let before = mtime(&spec);
-    // the same command again: nothing to train, the same tables
+    // the same command again: nothing to train, the same tables (every rollout run
+    // again, not read from the rollout cache, so that this checks the evaluation)
     std::fs::write(&file, spec_text(dir.path(), "results-b")).unwrap();
     let again = ExperimentSpec::from_file(&file).unwrap();
-    run_experiment(&again, &all, stop).unwrap();
+    let fresh = ExperimentOptions {
+        fresh_rollouts: true,
+        ..all
+    };
+    run_experiment(&again, &fresh, stop).unwrap();
     assert_eq!(
         mtime(&again),
         before,
@@ -538,6 +544,7 @@ fn unfinished_runs_are_refused_unless_allowed_and_missing_ones_are_left_out() {
         train: false,
         evaluate: true,
         allow_unfinished: false,
+        fresh_rollouts: false,
     };
     let e = format!(
         "{:#}",
@@ -649,6 +656,7 @@ fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_i
         train: false,
         evaluate: true,
         allow_unfinished: false,
+        fresh_rollouts: false,
     };
     run_experiment(&spec, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
     let md = std::fs::read_to_string(dir.path().join("results/README.md")).unwrap();
@@ -663,7 +671,11 @@ fn a_selection_rule_chooses_each_final_policy_on_validation_episodes_and_ships_i
         assert!(!load("selected.safetensors").actor_only, "{}", r.label);
     }
     train_all(&spec, Arc::new(AtomicBool::new(false))).unwrap();
-    assert!(!dir.path().join("runs").exists());
+    // (runs/ holds only the evaluation's rollout cache)
+    for r in &spec.runs {
+        assert!(!spec.run_dir(r).exists(), "{}", r.label);
+    }
+    assert!(dir.path().join("runs/rollout-cache").is_dir());
     // a larger budget for one of them is refused, saying why, instead of training
     // it from nothing
     let longer =
@@ -897,6 +909,7 @@ fn a_finished_run_shipped_as_numbered_checkpoints_alone_evaluates_without_meta()
         train: false,
         evaluate: true,
         allow_unfinished: false,
+        fresh_rollouts: false,
     };
     run_experiment(&spec, &eval_only, stop).unwrap();
     let ttf = std::fs::read_to_string(dir.path().join("results/ttf.csv")).unwrap();

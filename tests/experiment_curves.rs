@@ -119,6 +119,7 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         train: true,
         evaluate: true,
         allow_unfinished: false,
+        fresh_rollouts: false,
     };
     run_experiment(&spec, &all, Arc::new(AtomicBool::new(false))).unwrap();
     let out = dir.path().join("results");
@@ -179,6 +180,36 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         ttf_svg.contains("the paper&apos;s number at rung 0")
             || ttf_svg.contains("the paper's number at rung 0")
     );
+
+    // evaluated again, every rollout comes from the rollout cache, to the same bytes
+    assert!(time.contains(" read from the rollout cache"), "{time}");
+    assert!(!time.contains("rollouts: 0 run now"), "{time}");
+    std::fs::write(&file, spec_text(dir.path(), "results-again", &extra)).unwrap();
+    let again = ExperimentSpec::from_file(&file).unwrap();
+    let eval_again = ExperimentOptions {
+        train: false,
+        ..all
+    };
+    run_experiment(&again, &eval_again, Arc::new(AtomicBool::new(false))).unwrap();
+    let again_dir = dir.path().join("results-again");
+    let time = std::fs::read_to_string(again_dir.join("evaluation_time.txt")).unwrap();
+    assert!(time.contains("rollouts: 0 run now, "), "{time}");
+    for f in [
+        "runs.csv",
+        "ttf.csv",
+        "platform.csv",
+        "race.csv",
+        "checkpoints.csv",
+        "curves.csv",
+        "results.json",
+    ] {
+        let a = std::fs::read_to_string(out.join(f)).unwrap();
+        let b = std::fs::read_to_string(again_dir.join(f)).unwrap();
+        assert_eq!(
+            a, b,
+            "{f}: rollouts read from the cache must give the same bytes"
+        );
+    }
 
     // shipped as actor-only copies, the checkpoints evaluate to the same tables
     ship_all(&spec, &file).unwrap();

@@ -25,6 +25,11 @@ pub struct ExperimentArgs {
     /// (the tables mark them unfinished).
     #[arg(long)]
     pub allow_unfinished: bool,
+    /// Run every evaluation rollout again, neither reading nor storing the
+    /// rollout cache (`<runs_dir>/rollout-cache`, which lets a stopped
+    /// evaluation resume and a repeated one run only what changed).
+    #[arg(long, conflicts_with = "train_only")]
+    pub fresh_rollouts: bool,
     /// Print where every run stands and exit.
     #[arg(long)]
     pub status: bool,
@@ -90,6 +95,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         train: !args.eval_only,
         evaluate: !args.train_only,
         allow_unfinished: args.allow_unfinished,
+        fresh_rollouts: args.fresh_rollouts,
     };
     let stop = super::train::install_stop_handler()?;
     run_experiment(&spec, &opts, stop)

@@ -48,7 +48,7 @@ impl Default for EpisodeDraw {
 }
 
 /// Why an episode ended.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum EpisodeEnd {
     TimeOut,
     TrunkContact,

@@ -4,10 +4,12 @@
 //!   ground, platform, race course): env config + model + per-env hook.
 //! - [`ttf`]: Time to Fall (paper table I); [`platform`]: platform drops
 //!   (table II); [`race`]: race-track returns and the IQR meta controller (fig. 4).
-//! - [`jobs`]: independent rollouts side by side, one thread each.
+//! - [`jobs`]: independent rollouts side by side, one thread each; [`cache`]:
+//!   finished rollouts on disk, so a long evaluation resumes.
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
 //! - [`severity`]: the severity ladder (rung 0 = the paper's protocol, harder above).
 
+pub mod cache;
 pub mod falls;
 pub mod ground;
 pub mod jobs;
@@ -25,6 +27,7 @@ pub mod sidecar;
 pub mod tracking;
 pub mod ttf;
 
+pub use cache::{CacheUse, RolloutCache};
 pub use falls::{critic_before_falls, FallReport, QuantileMeans, FALL_TAUS};
 pub use platform::{evaluate_platform, DropOutcome, DropWatch, PlatformOptions, PlatformReport};
 pub use policy::{is_onnx, Actor, OnnxPolicy, OnnxRuntime, Policy};

@@ -17,13 +17,13 @@
 use anyhow::Result;
 use serde::Serialize;
 
-use super::jobs::run_jobs;
+use super::cache::{run_jobs_cached, RolloutCache};
 use super::report::{csv_line, markdown_table};
 use super::rollout::{run_first_episodes, FirstEpisode, NamedPolicy};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
 
 /// How one robot's drop went.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DropOutcome {
     Success,
@@ -234,6 +234,16 @@ pub fn platform_outcomes(
 pub fn evaluate_platform(
     policies: &[NamedPolicy],
     opts: &PlatformOptions,
+    progress: impl FnMut(&PlatformCell),
+) -> Result<PlatformReport> {
+    evaluate_platform_cached(policies, opts, &RolloutCache::none(), progress)
+}
+
+/// [`evaluate_platform`], reading and storing its rollouts in `cache`.
+pub fn evaluate_platform_cached(
+    policies: &[NamedPolicy],
+    opts: &PlatformOptions,
+    cache: &RolloutCache,
     mut progress: impl FnMut(&PlatformCell),
 ) -> Result<PlatformReport> {
     anyhow::ensure!(!policies.is_empty(), "no policy to evaluate");
@@ -251,17 +261,29 @@ pub fn evaluate_platform(
             }
         }
     }
-    let rollouts = run_jobs(&jobs, opts.threads, |(_, spec, p, seed), threads| {
-        let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
-        platform_outcomes(
-            &p.policy,
-            &setup,
-            opts.repeats,
-            threads,
-            *seed,
-            opts.settle_s,
-        )
-    })?;
+    let key = |(_, spec, p, seed): &(f64, ScenarioSpec, &NamedPolicy, u64)| {
+        let (params, robots, settle_s) = (&opts.params, opts.repeats, opts.settle_s);
+        p.rollout_key().map(|k| {
+            format!("platform\n{spec:?}\n{params:?}\nseed {seed}\nrobots {robots}\nsettle {settle_s:?} s\n{k}")
+        })
+    };
+    let rollouts = run_jobs_cached(
+        &jobs,
+        opts.threads,
+        cache,
+        key,
+        |(_, spec, p, seed), threads| {
+            let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
+            platform_outcomes(
+                &p.policy,
+                &setup,
+                opts.repeats,
+                threads,
+                *seed,
+                opts.settle_s,
+            )
+        },
+    )?;
     let mut cells = Vec::new();
     for (cell_jobs, cell_rollouts) in jobs
         .chunks(opts.seeds.len())

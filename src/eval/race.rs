@@ -14,7 +14,7 @@
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
-use super::jobs::run_jobs;
+use super::cache::{run_jobs_cached, RolloutCache};
 use super::policy::Actor;
 use super::report::{csv_line, markdown_table};
 use super::rollout::{NamedPolicy, ScenarioRun};
@@ -24,7 +24,7 @@ use crate::learn::relayout_rows;
 use crate::stats::{mean, quantile};
 
 /// The meta controller's settings.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MetaConfig {
     pub name: String,
     /// Name of the risk-neutral policy (its critic's IQR drives the switch).
@@ -199,7 +199,7 @@ impl Default for RaceOptions {
 }
 
 /// The meta controller's switching log.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MetaLog {
     pub config: MetaConfig,
     pub switches_to_safe: u64,
@@ -279,7 +279,7 @@ pub struct RaceRow {
 }
 
 /// One finished race episode.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RaceEpisode {
     pub total_reward: f64,
     /// Ended before the time-out.
@@ -452,6 +452,17 @@ pub fn evaluate_race(
     policies: &[NamedPolicy],
     metas: &[MetaConfig],
     opts: &RaceOptions,
+    progress: impl FnMut(&RaceRow),
+) -> Result<RaceReport> {
+    evaluate_race_cached(policies, metas, opts, &RolloutCache::none(), progress)
+}
+
+/// [`evaluate_race`], reading and storing its rollouts in `cache`.
+pub fn evaluate_race_cached(
+    policies: &[NamedPolicy],
+    metas: &[MetaConfig],
+    opts: &RaceOptions,
+    cache: &RolloutCache,
     mut progress: impl FnMut(&RaceRow),
 ) -> Result<RaceReport> {
     anyhow::ensure!(
@@ -478,15 +489,36 @@ pub fn evaluate_race(
         };
         drivers.push((cfg.name.clone(), meta));
     }
-    let raced = run_jobs(&drivers, opts.threads, |(_, driver), threads| {
-        run_race(
-            driver,
-            &RaceOptions {
-                threads,
-                ..opts.clone()
-            },
-        )
-    })?;
+    let key = |(_, driver): &(String, Driver)| {
+        let o = opts;
+        let race = format!(
+            "race\n{:?}\nagents {} episodes {} seed {} course {}",
+            o.params, o.agents, o.episodes, o.seed, o.course_seed
+        );
+        match driver {
+            Driver::Single(p) => Some(format!("{race}\n{}", p.rollout_key()?)),
+            Driver::Meta { risky, safe, cfg } => Some(format!(
+                "{race}\nmeta {cfg:?}\nrisky {}\nsafe {}",
+                risky.rollout_key()?,
+                safe.rollout_key()?
+            )),
+        }
+    };
+    let raced = run_jobs_cached(
+        &drivers,
+        opts.threads,
+        cache,
+        key,
+        |(_, driver), threads| {
+            run_race(
+                driver,
+                &RaceOptions {
+                    threads,
+                    ..opts.clone()
+                },
+            )
+        },
+    )?;
     let mut rows = Vec::new();
     for ((name, _), (eps, log)) in drivers.iter().zip(raced) {
         let row = RaceRow::new(name, &eps, log);

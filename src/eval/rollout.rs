@@ -22,6 +22,14 @@ pub struct NamedPolicy {
     /// Loaded from an actor-only copy (`rall checkpoint actor-only`): it acts, but
     /// its critic was never trained, so [`NamedPolicy::critic`] refuses it.
     pub actor_only: bool,
+    /// FNV-1a of the checkpoint it was loaded from (the rollout cache's key).
+    pub file_hash: Option<u64>,
+}
+
+/// FNV-1a of a file's bytes; `None` when it cannot be read (the load itself
+/// reports why).
+fn file_hash(path: &Path) -> Option<u64> {
+    std::fs::read(path).ok().map(crate::hash::fnv1a64)
 }
 
 impl NamedPolicy {
@@ -42,6 +50,8 @@ impl NamedPolicy {
                 policy: Policy::Onnx(Box::new(p)),
                 path: Some(path.to_path_buf()),
                 actor_only: true,
+                // its numbers also depend on the ONNX runtime chosen: never cached
+                file_hash: None,
             });
         }
         let p = load_policy(path).with_context(|| format!("policy {name}"))?;
@@ -51,7 +61,20 @@ impl NamedPolicy {
             env: p.config.env,
             path: Some(path.to_path_buf()),
             actor_only: p.actor_only,
+            file_hash: file_hash(path),
         })
+    }
+
+    /// What the policy's rollouts depend on, for the rollout cache: the bytes it
+    /// was loaded from, the env config it acts in and its robot model's bytes;
+    /// `None` when it was not loaded from a checkpoint file.
+    pub fn rollout_key(&self) -> Option<String> {
+        let h = self.file_hash?;
+        let model = file_hash(Path::new(&self.env.robot_mjcf))?;
+        Some(format!(
+            "policy file {h:016x}\nrobot model {model:016x}\nenv {:?}",
+            self.env
+        ))
     }
 
     /// The checkpoint's learner (critic, Gaussian); an ONNX policy has none, and
@@ -159,7 +182,7 @@ impl ScenarioRun {
 }
 
 /// How a robot's first episode ended.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FirstEpisode {
     /// Policy steps survived (the full length on a time-out).
     pub steps: usize,

@@ -12,7 +12,7 @@ use crate::env::terrain::TerrainKind;
 use crate::env::{build_scene, EnvConfig, EpisodeDraw, EpisodeEnd, VecEnv};
 
 /// One robot's share of the tracking figures: the unit a bootstrap resamples.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct RobotTracking {
     /// Sums over the robot's scored steps of the two per-step scores.
     pub lin_score_sum: f64,
@@ -45,7 +45,7 @@ fn step_mean(robots: &[RobotTracking], sum: impl Fn(&RobotTracking) -> f64) -> f
 }
 
 /// Tracking figures over all evaluated episodes.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrackingReport {
     pub episodes: usize,
     /// Mean over robot-steps of exp(-|v_cmd_xy - v_xy|^2 / sigma), in [0, 1].

@@ -10,7 +10,7 @@
 use anyhow::Result;
 use serde::Serialize;
 
-use super::jobs::run_jobs;
+use super::cache::{run_jobs_cached, RolloutCache};
 use super::report::{csv_line, markdown_table};
 use super::rollout::{run_first_episodes, FirstEpisode, NamedPolicy};
 use super::scenario::{build_scenario, GroundKind, Load, ScenarioParams, ScenarioSpec};
@@ -164,6 +164,16 @@ pub fn ttf_cell(
 pub fn evaluate_ttf(
     policies: &[NamedPolicy],
     opts: &TtfOptions,
+    progress: impl FnMut(&TtfCell),
+) -> Result<TtfReport> {
+    evaluate_ttf_cached(policies, opts, &RolloutCache::none(), progress)
+}
+
+/// [`evaluate_ttf`], reading and storing its rollouts in `cache`.
+pub fn evaluate_ttf_cached(
+    policies: &[NamedPolicy],
+    opts: &TtfOptions,
+    cache: &RolloutCache,
     mut progress: impl FnMut(&TtfCell),
 ) -> Result<TtfReport> {
     anyhow::ensure!(!policies.is_empty(), "no policy to evaluate");
@@ -185,18 +195,30 @@ pub fn evaluate_ttf(
             }
         }
     }
-    let rollouts = run_jobs(&jobs, opts.threads, |(spec, p, seed), threads| {
-        let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
-        let first = run_first_episodes(
-            &p.policy,
-            &setup,
-            opts.repeats,
-            threads,
-            *seed,
-            |_, _, _| {},
-        )?;
-        Ok((first, setup.env.max_episode_steps()))
-    })?;
+    let key = |(spec, p, seed): &(ScenarioSpec, &NamedPolicy, u64)| {
+        let (params, robots) = (&opts.params, opts.repeats);
+        p.rollout_key().map(|k| {
+            format!("time to fall\n{spec:?}\n{params:?}\nseed {seed}\nrobots {robots}\n{k}")
+        })
+    };
+    let rollouts = run_jobs_cached(
+        &jobs,
+        opts.threads,
+        cache,
+        key,
+        |(spec, p, seed), threads| {
+            let setup = build_scenario(spec, &p.env, &opts.params, *seed)?;
+            let first = run_first_episodes(
+                &p.policy,
+                &setup,
+                opts.repeats,
+                threads,
+                *seed,
+                |_, _, _| {},
+            )?;
+            Ok((first, setup.env.max_episode_steps()))
+        },
+    )?;
     let (firsts, episode_steps): (Vec<Vec<FirstEpisode>>, Vec<usize>) =
         rollouts.into_iter().unzip();
     let mut cells = Vec::new();

@@ -17,9 +17,11 @@ use super::{kcheck, ladder, risk_signal, stats};
 use super::{run_state, ExperimentOptions, RunState};
 use crate::config::TrainConfig;
 use crate::env::{build_scene, EnvConfig, VecEnv};
+use crate::eval::cache::run_jobs_cached;
+use crate::eval::race::evaluate_race_cached;
 use crate::eval::{
-    evaluate_race, evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind,
-    Load, MetaConfig, NamedPolicy, PlatformOptions, RaceOptions, ScenarioParams, TtfOptions,
+    evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind, Load, MetaConfig,
+    NamedPolicy, PlatformOptions, RaceOptions, RolloutCache, ScenarioParams, TtfOptions,
 };
 
 pub(super) fn seeds(first: u64, n: usize) -> Vec<u64> {
@@ -115,6 +117,7 @@ fn track_all(
     runs: &[(spec::RunSpec, RunState)],
     available: &[String],
     threads: usize,
+    cache: &RolloutCache,
 ) -> Result<Vec<RunTracking>> {
     let common = spec
         .tracking
@@ -146,7 +149,15 @@ fn track_all(
         }
         reports_of_run.push(slots);
     }
-    let reports = crate::eval::jobs::run_jobs(&jobs, threads, |(i, env), threads| {
+    let (episodes, seed) = (spec.tracking.episodes, spec.tracking.seed);
+    let key = |(i, env): &(usize, EnvConfig)| {
+        let p = &policies[*i].0;
+        let own = p.rollout_key()?;
+        Some(format!(
+            "tracking, mean action\n{own}\nevaluated in {env:?}\nepisodes {episodes} seed {seed}"
+        ))
+    };
+    let reports = run_jobs_cached(&jobs, threads, cache, key, |(i, env), threads| {
         evaluate_tracking(
             &policies[*i].0.policy,
             env,
@@ -254,6 +265,16 @@ fn race_runs(methods: Vec<String>, metas: &[MetaConfig]) -> Vec<String> {
     labels
 }
 
+/// The experiment's rollout cache: `<runs_dir>/rollout-cache`, unless the
+/// options turn it off.
+fn rollout_cache(spec: &ExperimentSpec, opts: &ExperimentOptions) -> RolloutCache {
+    if opts.fresh_rollouts {
+        RolloutCache::none()
+    } else {
+        RolloutCache::at(spec.runs_dir.join("rollout-cache"))
+    }
+}
+
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
 pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
     let threads = crate::config::worker_threads(spec.threads);
@@ -272,7 +293,8 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         warn_unchosen_teachers(spec, &runs)?;
     }
     clock.next("velocity tracking of every policy");
-    let tracking = track_all(spec, &runs, &available, threads)?;
+    let cache = rollout_cache(spec, opts);
+    let tracking = track_all(spec, &runs, &available, threads, &cache)?;
 
     clock.next("table I: time to fall");
     let ttf_opts = ttf_options(spec, threads)?;
@@ -281,7 +303,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let ttf = if ttf_methods.is_empty() {
         None
     } else {
-        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, |c| {
+        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, &cache, |c| {
             eprintln!(
                 "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
                 c.load.name(),
@@ -302,7 +324,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         None
     } else {
         let (report, s) =
-            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, |c| {
+            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, &cache, |c| {
                 eprintln!(
                     "  {:.2} m {:<14} success {:.1}%",
                     c.height_m, c.policy, c.success_pct
@@ -322,12 +344,18 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         None
     } else {
         let policies = load_runs(spec, &race_labels)?;
-        Some(evaluate_race(&policies, &metas, &race_opts, |r| {
-            eprintln!(
-                "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
-                r.name, r.q25, r.q50, r.q75
-            )
-        })?)
+        Some(evaluate_race_cached(
+            &policies,
+            &metas,
+            &race_opts,
+            &cache,
+            |r| {
+                eprintln!(
+                    "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+                    r.name, r.q25, r.q50, r.q75
+                )
+            },
+        )?)
     };
     let reports = ladder::RungReports {
         ttf: ttf.as_ref(),
@@ -339,6 +367,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         platform: (&platform_opts, platform_methods),
         race: (&race_opts, race_labels),
         metas: &metas,
+        cache: &cache,
     };
     let (curves, contrasts) = match &spec.curves {
         Some(c) => {
@@ -351,9 +380,14 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         ),
     };
     let (whole, phases) = clock.finish();
+    let cache_use = cache.usage();
+    if let Some(dir) = cache.dir() {
+        eprintln!("  {} ({})", cache_use.show(), dir.display());
+    }
     let mut results = ExperimentResults::new(spec, runs, tracking, ttf, platform, race);
     results.evaluation_time = Some(whole);
     results.phases = phases;
+    results.rollouts = cache.dir().map(|_| cache_use);
     results.set_curves(spec, curves)?;
     results.contrasts = contrasts;
     results.preface = spec.preface_text()?;

@@ -14,11 +14,10 @@ use serde::{Deserialize, Serialize};
 
 use super::spec::{CheckpointsSpec, ExperimentSpec, RunSpec};
 use super::stats::mean;
-use crate::eval::platform::PlatformCell;
-use crate::eval::ttf::{time_to_fall, TtfCell};
+use crate::eval::platform::{evaluate_platform_cached, PlatformCell};
+use crate::eval::ttf::{evaluate_ttf_cached, time_to_fall, TtfCell};
 use crate::eval::{
-    evaluate_platform, evaluate_ttf, NamedPolicy, PlatformOptions, PlatformReport, TtfOptions,
-    TtfReport,
+    NamedPolicy, PlatformOptions, PlatformReport, RolloutCache, TtfOptions, TtfReport,
 };
 use crate::runner::RunDir;
 
@@ -265,12 +264,14 @@ pub fn evaluate_ttf_runs(
     spec: &ExperimentSpec,
     labels: &[String],
     opts: &TtfOptions,
+    cache: &RolloutCache,
     mut progress: impl FnMut(&TtfCell),
 ) -> Result<(TtfReport, Vec<CheckpointSpread>)> {
     let Some(c) = &spec.checkpoints else {
-        let report = evaluate_ttf(
+        let report = evaluate_ttf_cached(
             &super::final_policy::load_runs(spec, labels)?,
             opts,
+            cache,
             progress,
         )?;
         return Ok((report, Vec::new()));
@@ -282,9 +283,10 @@ pub fn evaluate_ttf_runs(
             repeats: repeats_per_checkpoint(opts.repeats, c.last),
             ..opts.clone()
         };
-        reports.push(evaluate_ttf(
+        reports.push(evaluate_ttf_cached(
             &load_kth(spec, c, labels, k)?,
             &opts_k,
+            cache,
             &mut progress,
         )?);
     }
@@ -297,12 +299,14 @@ pub fn evaluate_platform_runs(
     spec: &ExperimentSpec,
     labels: &[String],
     opts: &PlatformOptions,
+    cache: &RolloutCache,
     mut progress: impl FnMut(&PlatformCell),
 ) -> Result<(PlatformReport, Vec<CheckpointSpread>)> {
     let Some(c) = &spec.checkpoints else {
-        let report = evaluate_platform(
+        let report = evaluate_platform_cached(
             &super::final_policy::load_runs(spec, labels)?,
             opts,
+            cache,
             progress,
         )?;
         return Ok((report, Vec::new()));
@@ -314,9 +318,10 @@ pub fn evaluate_platform_runs(
             repeats: repeats_per_checkpoint(opts.repeats, c.last),
             ..opts.clone()
         };
-        reports.push(evaluate_platform(
+        reports.push(evaluate_platform_cached(
             &load_kth(spec, c, labels, k)?,
             &opts_k,
+            cache,
             &mut progress,
         )?);
     }

@@ -13,9 +13,10 @@ use super::final_policy::load_runs;
 use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
+use crate::eval::race::evaluate_race_cached;
 use crate::eval::{
-    evaluate_race, MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport,
-    TtfOptions, TtfReport,
+    MetaConfig, PlatformOptions, PlatformReport, RaceOptions, RaceReport, RolloutCache, TtfOptions,
+    TtfReport,
 };
 
 /// The three benchmarks' reports at one rung.
@@ -31,6 +32,8 @@ pub(super) struct TableRuns<'a> {
     pub platform: (&'a PlatformOptions, Vec<String>),
     pub race: (&'a RaceOptions, Vec<String>),
     pub metas: &'a [MetaConfig],
+    /// Where finished rollouts are kept, so an evaluation resumes.
+    pub cache: &'a RolloutCache,
 }
 
 /// The experiment's bootstrap settings.
@@ -119,7 +122,7 @@ fn evaluate_rung(
             ..tables.ttf.0.clone()
         };
         Ok(Some(
-            evaluate_ttf_runs(spec, &tables.ttf.1, &opts, |_| {})?.0,
+            evaluate_ttf_runs(spec, &tables.ttf.1, &opts, tables.cache, |_| {})?.0,
         ))
     })?;
     let platform = clock.time(what("platform"), || -> Result<_> {
@@ -134,7 +137,7 @@ fn evaluate_rung(
             ..tables.platform.0.clone()
         };
         Ok(Some(
-            evaluate_platform_runs(spec, &tables.platform.1, &opts, |_| {})?.0,
+            evaluate_platform_runs(spec, &tables.platform.1, &opts, tables.cache, |_| {})?.0,
         ))
     })?;
     let race = clock.time(what("race"), || -> Result<_> {
@@ -148,7 +151,13 @@ fn evaluate_rung(
             ..tables.race.0.clone()
         };
         let policies = load_runs(spec, &tables.race.1)?;
-        Ok(Some(evaluate_race(&policies, tables.metas, &opts, |_| {})?))
+        Ok(Some(evaluate_race_cached(
+            &policies,
+            tables.metas,
+            &opts,
+            tables.cache,
+            |_| {},
+        )?))
     })?;
     let reports = RungReports {
         ttf: ttf.as_ref(),

@@ -47,6 +47,8 @@ pub struct ExperimentOptions {
     pub evaluate: bool,
     /// Evaluate unfinished runs at their latest checkpoint instead of refusing.
     pub allow_unfinished: bool,
+    /// Run every rollout, neither reading nor storing the rollout cache.
+    pub fresh_rollouts: bool,
 }
 
 /// A run's state on disk.

@@ -191,6 +191,9 @@ pub struct ExperimentResults {
     /// Where the evaluation's time went, stage by stage, in order.
     #[serde(skip)]
     pub phases: Vec<PhaseTime>,
+    /// How many rollouts ran and how many came from the rollout cache.
+    #[serde(skip)]
+    pub rollouts: Option<crate::eval::CacheUse>,
 }
 
 const TTF_COLUMNS: [(&str, bool); 4] = [
@@ -242,6 +245,7 @@ impl ExperimentResults {
             preface: None,
             evaluation_time: None,
             phases: Vec::new(),
+            rollouts: None,
         }
     }
 

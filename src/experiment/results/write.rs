@@ -51,6 +51,10 @@ impl ExperimentResults {
         for p in &self.phases {
             text.push_str(&format!("  {}: {}\n", p.phase, p.show()));
         }
+        if let Some(r) = &self.rollouts {
+            text.push_str(&r.show());
+            text.push('\n');
+        }
         text
     }
 
