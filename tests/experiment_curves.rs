@@ -210,6 +210,40 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
             "{f}: rollouts read from the cache must give the same bytes"
         );
     }
+    // an evaluation stopped part way (half the rollouts kept) ends as one that was not
+    let cache = dir.path().join("runs/rollout-cache");
+    let mut kept: Vec<_> = std::fs::read_dir(&cache)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    kept.sort();
+    for lost in kept.iter().step_by(2) {
+        std::fs::remove_file(lost).unwrap();
+    }
+    std::fs::write(&file, spec_text(dir.path(), "results-resumed", &extra)).unwrap();
+    let resumed = ExperimentSpec::from_file(&file).unwrap();
+    run_experiment(&resumed, &eval_again, Arc::new(AtomicBool::new(false))).unwrap();
+    let resumed_dir = dir.path().join("results-resumed");
+    let time = std::fs::read_to_string(resumed_dir.join("evaluation_time.txt")).unwrap();
+    let lost = kept.len().div_ceil(2);
+    assert!(
+        time.contains(&format!(
+            "rollouts: {lost} run now, {} read",
+            kept.len() - lost
+        )),
+        "{time}"
+    );
+    for f in [
+        "ttf.csv",
+        "platform.csv",
+        "race.csv",
+        "curves.csv",
+        "results.json",
+    ] {
+        let a = std::fs::read_to_string(out.join(f)).unwrap();
+        let b = std::fs::read_to_string(resumed_dir.join(f)).unwrap();
+        assert_eq!(a, b, "{f}: a resumed evaluation must give the same bytes");
+    }
 
     // shipped as actor-only copies, the checkpoints evaluate to the same tables
     ship_all(&spec, &file).unwrap();
