@@ -108,6 +108,14 @@ race_agents = 2
 race_episodes = 1
 ";
 
+/// Asserts that each of `files` is the same in `a` and `b` (`how` b was written).
+fn same_files(a: &Path, b: &Path, files: &[&str], how: &str) {
+    for f in files {
+        let read = |dir: &Path| std::fs::read_to_string(dir.join(f)).unwrap();
+        assert_eq!(read(a), read(b), "{f}: {how} must give the same bytes");
+    }
+}
+
 #[test]
 fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoints() {
     let dir = tempfile::tempdir().unwrap();
@@ -194,7 +202,7 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
     let again_dir = dir.path().join("results-again");
     let time = std::fs::read_to_string(again_dir.join("evaluation_time.txt")).unwrap();
     assert!(time.contains("rollouts: 0 run now, "), "{time}");
-    for f in [
+    let all_tables = [
         "runs.csv",
         "ttf.csv",
         "platform.csv",
@@ -202,14 +210,13 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         "checkpoints.csv",
         "curves.csv",
         "results.json",
-    ] {
-        let a = std::fs::read_to_string(out.join(f)).unwrap();
-        let b = std::fs::read_to_string(again_dir.join(f)).unwrap();
-        assert_eq!(
-            a, b,
-            "{f}: rollouts read from the cache must give the same bytes"
-        );
-    }
+    ];
+    same_files(
+        &out,
+        &again_dir,
+        &all_tables,
+        "rollouts read from the cache",
+    );
     // an evaluation stopped part way (half the rollouts kept) ends as one that was not
     let cache = dir.path().join("runs/rollout-cache");
     let mut kept: Vec<_> = std::fs::read_dir(&cache)
@@ -233,17 +240,7 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
         )),
         "{time}"
     );
-    for f in [
-        "ttf.csv",
-        "platform.csv",
-        "race.csv",
-        "curves.csv",
-        "results.json",
-    ] {
-        let a = std::fs::read_to_string(out.join(f)).unwrap();
-        let b = std::fs::read_to_string(resumed_dir.join(f)).unwrap();
-        assert_eq!(a, b, "{f}: a resumed evaluation must give the same bytes");
-    }
+    same_files(&out, &resumed_dir, &all_tables, "a resumed evaluation");
 
     // shipped as actor-only copies, the checkpoints evaluate to the same tables
     ship_all(&spec, &file).unwrap();
@@ -263,11 +260,7 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
     std::fs::remove_dir_all(dir.path().join("runs")).unwrap();
     std::fs::write(&file, spec_text(dir.path(), "results-shipped", &extra)).unwrap();
     let shipped = ExperimentSpec::from_file(&file).unwrap();
-    let eval_only = ExperimentOptions {
-        train: false,
-        ..all
-    };
-    run_experiment(&shipped, &eval_only, Arc::new(AtomicBool::new(false))).unwrap();
+    run_experiment(&shipped, &eval_again, Arc::new(AtomicBool::new(false))).unwrap();
     for f in ["ttf.csv", "platform.csv", "checkpoints.csv", "curves.csv"] {
         let a = std::fs::read_to_string(out.join(f)).unwrap();
         let b = std::fs::read_to_string(dir.path().join("results-shipped").join(f)).unwrap();
@@ -288,7 +281,7 @@ fn curves_cover_every_method_and_rung_and_runs_are_judged_on_their_last_checkpoi
     let spec = ExperimentSpec::from_file(&file).unwrap();
     let err = format!(
         "{:#}",
-        run_experiment(&spec, &eval_only, Arc::new(AtomicBool::new(false))).unwrap_err()
+        run_experiment(&spec, &eval_again, Arc::new(AtomicBool::new(false))).unwrap_err()
     );
     assert!(err.contains("[checkpoints]"), "{err}");
     assert_eq!(
