@@ -125,6 +125,13 @@ resamples = 50
 [contrasts]
 pairs = [["RALL", "Baseline"], ["Meta", "RALL"]]
 
+[critic_tail]
+methods = ["Baseline", "RALL", "RALL seed 2"]
+robots = 3
+steps = 60
+window = 5
+seed = 9
+
 [[paper.ttf]]
 load = "ball"
 method = "Baseline"
@@ -190,6 +197,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "platform_by_method.csv",
         "race_by_method.csv",
         "contrasts.csv",
+        "critic_tail.csv",
         "results.json",
     ] {
         let a = std::fs::read_to_string(dir.path().join("results-a").join(f)).unwrap();
@@ -316,6 +324,26 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         "{md}"
     );
     assert!(md.contains("Meta"), "{md}");
+    // each listed run's critic before falls: a scalar V for Baseline, quantiles for RALL
+    assert!(md.contains("## What the critics saw before falls"), "{md}");
+    let tail = std::fs::read_to_string(dir.path().join("results-a/critic_tail.csv")).unwrap();
+    let critics: Vec<(&str, &str)> = tail
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0], f[2])
+        })
+        .collect();
+    assert_eq!(
+        critics,
+        [
+            ("Baseline", "scalar"),
+            ("RALL", "distribution"),
+            ("RALL seed 2", "distribution")
+        ],
+        "{tail}"
+    );
     // every run also tracked under each common randomisation; the first is its own:
     // the same episodes to the digit (the override changes the draws' ranges, nothing
     // else); the second (wider) gives other episodes
@@ -497,6 +525,19 @@ fn an_experiment_file_naming_an_unknown_method_is_refused() {
     );
     let e = refusal(dir.path(), &text);
     assert!(e.contains("race.methods") && e.contains("Baselin"), "{e}");
+    let good = spec_text(dir.path(), "r");
+    let tail = "methods = [\"Baseline\", \"RALL\", \"RALL seed 2\"]\nrobots";
+    assert!(good.contains(tail));
+    let e = refusal(
+        dir.path(),
+        &good.replace(tail, "methods = [\"RAL\"]\nrobots"),
+    );
+    assert!(
+        e.contains("critic_tail.methods") && e.contains("RAL"),
+        "{e}"
+    );
+    let e = refusal(dir.path(), &good.replace("window = 5\n", "window = 60\n"));
+    assert!(e.contains("critic_tail.window"), "{e}");
 }
 
 #[test]

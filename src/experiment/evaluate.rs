@@ -13,7 +13,7 @@ use super::final_policy::{
 };
 use super::results::{ExperimentResults, RunTracking};
 use super::spec::{self, ExperimentSpec, MetaSpec};
-use super::{kcheck, ladder, risk_signal, stats};
+use super::{critic_tail, kcheck, ladder, risk_signal, stats};
 use super::{run_state, ExperimentOptions, RunState};
 use crate::config::TrainConfig;
 use crate::env::{build_scene, EnvConfig, VecEnv};
@@ -278,7 +278,7 @@ fn rollout_cache(spec: &ExperimentSpec, opts: &ExperimentOptions) -> RolloutCach
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
 pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
     let threads = crate::config::worker_threads(spec.threads);
-    let stages = if spec.curves.is_some() { 6 } else { 5 };
+    let stages = 5 + spec.curves.is_some() as usize + spec.critic_tail.is_some() as usize;
     let mut clock = PhaseClock::new(stages);
     let runs = runs_to_evaluate(spec, opts)?;
     let available = runs_with_checkpoints(spec, &runs)?;
@@ -379,6 +379,15 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             ladder::rung_contrasts(spec, 0, &reports, &tables),
         ),
     };
+    let critic_tail = match &spec.critic_tail {
+        Some(s) => {
+            clock.next("the critics before falls");
+            Some(critic_tail::evaluate_critic_tail(
+                spec, s, &available, threads, &cache,
+            )?)
+        }
+        None => None,
+    };
     let (whole, phases) = clock.finish();
     let cache_use = cache.usage();
     if let Some(dir) = cache.dir() {
@@ -390,6 +399,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     results.rollouts = cache.dir().map(|_| cache_use);
     results.set_curves(spec, curves)?;
     results.contrasts = contrasts;
+    results.critic_tail = critic_tail;
     results.preface = spec.preface_text()?;
     results.checkpoint_spread = spread;
     if let Some(rs) = &spec.risk_signal {

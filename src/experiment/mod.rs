@@ -6,6 +6,7 @@
 
 mod clock;
 pub mod contrasts;
+pub mod critic_tail;
 pub mod curve_plots;
 pub mod curves;
 mod evaluate;

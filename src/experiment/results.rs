@@ -178,6 +178,9 @@ pub struct ExperimentResults {
     /// With `[risk_signal]`: each run's risk terms over its last training iterations.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub risk_signal: Vec<super::risk_signal::RiskTermRow>,
+    /// With `[critic_tail]`: each run's critic before falls and elsewhere.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub critic_tail: Option<super::critic_tail::CriticTail>,
     /// With `[contrasts]`: each pair of methods on every benchmark and rung.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub contrasts: Vec<Contrast>,
@@ -241,6 +244,7 @@ impl ExperimentResults {
             curve_paper: Vec::new(),
             checkpoint_spread: Vec::new(),
             risk_signal: Vec::new(),
+            critic_tail: None,
             contrasts: Vec::new(),
             preface: None,
             evaluation_time: None,

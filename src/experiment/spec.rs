@@ -49,6 +49,9 @@ pub struct ExperimentSpec {
     /// What each run's risk penalties marked in training (`[risk_signal]`); absent: not reported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub risk_signal: Option<super::risk_signal::RiskSignalSpec>,
+    /// What each run's critic says before its robots fall (`[critic_tail]`); absent: not reported.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub critic_tail: Option<super::critic_tail::CriticTailSpec>,
     /// Pairs of methods compared rung by rung (`[contrasts]`); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrasts: Option<super::contrasts::ContrastsSpec>,
@@ -416,6 +419,9 @@ impl ExperimentSpec {
             sel.validate(self.tracking.seed)?;
         }
         if let Some(c) = &self.contrasts {
+            c.validate(self)?;
+        }
+        if let Some(c) = &self.critic_tail {
             c.validate(self)?;
         }
         self.preface_text()?;

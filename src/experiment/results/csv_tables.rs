@@ -35,6 +35,12 @@ impl ExperimentResults {
                 crate::experiment::risk_signal::risk_csv(&self.risk_signal),
             ));
         }
+        if let Some(t) = self.critic_tail.as_ref().filter(|t| !t.rows.is_empty()) {
+            files.push((
+                "critic_tail.csv",
+                crate::experiment::critic_tail::tail_csv(t),
+            ));
+        }
         files
     }
 

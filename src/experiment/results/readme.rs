@@ -116,6 +116,7 @@ impl ExperimentResults {
         self.curves_markdown(&mut s);
         self.spread_markdown(&mut s);
         crate::experiment::risk_signal::risk_markdown(&self.risk_signal, &mut s);
+        crate::experiment::critic_tail::tail_markdown(self.critic_tail.as_ref(), &mut s);
         self.methods_markdown(&mut s);
         self.per_run_markdown(&mut s);
         let _ = writeln!(s, "\n## Figures\n");
