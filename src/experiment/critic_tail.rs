@@ -110,6 +110,15 @@ impl CriticTailRow {
         }
     }
 
+    /// "distribution" or "scalar", as the tables print it.
+    pub fn critic_kind(&self) -> &'static str {
+        if self.distribution {
+            "distribution"
+        } else {
+            "scalar"
+        }
+    }
+
     /// How far quantile `k` is lower before a fall than elsewhere (`None` without falls).
     fn drop(&self, k: usize) -> Option<f64> {
         (self.states_before_fall > 0).then(|| self.elsewhere[k] - self.before_fall[k])
@@ -251,11 +260,7 @@ pub fn tail_csv(t: &CriticTail) -> String {
             "{},{},{},{:.3},{},{},{}",
             r.run,
             r.policy_iteration.map_or(String::new(), |i| i.to_string()),
-            if r.distribution {
-                "distribution"
-            } else {
-                "scalar"
-            },
+            r.critic_kind(),
             r.terrain_level,
             r.falls,
             r.states_before_fall,
@@ -344,11 +349,7 @@ pub fn tail_markdown(t: Option<&CriticTail>, s: &mut String) {
             r.run,
             r.policy_iteration
                 .map_or("newest".into(), |i| i.to_string()),
-            if r.distribution {
-                "distribution"
-            } else {
-                "scalar"
-            },
+            r.critic_kind(),
             r.terrain_level,
             r.falls,
             pair(r.before_fall[MEDIAN], r.elsewhere[MEDIAN]),
