@@ -18,7 +18,8 @@ use super::final_policy::load_final_policy;
 use super::pooled::{methods_of, Method};
 use super::spec::ExperimentSpec;
 use crate::eval::cache::run_jobs_cached;
-use crate::eval::{critic_before_falls, FallReport, RolloutCache, FALL_TAUS};
+use crate::eval::{critic_before_falls, FallReport, NamedPolicy, RolloutCache, FALL_TAUS};
+use crate::runner::{load_policy, LoadedPolicy};
 
 /// `[critic_tail]`: which runs, and how long their robots walk.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -170,30 +171,21 @@ pub fn evaluate_critic_tail(
         .filter(|m| available.contains(m))
         .cloned()
         .collect();
-    let mut policies = Vec::new();
-    for label in &labels {
-        let (p, iteration) = load_final_policy(spec, label)?;
-        let learner = p.critic().with_context(|| {
-            format!("critic_tail.methods: run {label:?} (the section reads its critic)")
-        })?;
-        let distribution = learner.config().critic.has_quantiles();
-        let path = p.path.clone().context("a run's policy comes from a file")?;
-        let levels = crate::runner::load_policy(&path)?.progress.terrain_levels;
-        let level = mean_level(levels.as_deref().unwrap_or_default());
-        policies.push((p, path, iteration, distribution, level));
-    }
+    let runs = labels
+        .iter()
+        .map(|label| TailRun::load(spec, label))
+        .collect::<Result<Vec<_>>>()?;
     let (robots, steps, window, seed) = (s.robots, s.steps, s.window, s.seed);
     let key = |i: &usize| {
-        let own = policies[*i].0.rollout_key()?;
+        let own = runs[*i].policy.rollout_key()?;
         Some(format!(
             "critic before falls, sampled actions, training env\n{own}\nrobots {robots} steps {steps} window {window} seed {seed}"
         ))
     };
-    let jobs: Vec<usize> = (0..policies.len()).collect();
-    let reports = run_jobs_cached(&jobs, threads, cache, key, |&i, _| {
-        let (p, path, ..) = &policies[i];
-        let loaded = crate::runner::load_policy(path)
-            .with_context(|| format!("run {:?}: {}", p.name, path.display()))?;
+    let jobs: Vec<usize> = (0..runs.len()).collect();
+    let rows = run_jobs_cached(&jobs, threads, cache, key, |&i, _| {
+        let run = &runs[i];
+        let loaded = &run.loaded;
         let r = crate::learn::mat::serial(|| {
             critic_before_falls(
                 &loaded.learner,
@@ -205,18 +197,18 @@ pub fn evaluate_critic_tail(
             )
         })?;
         Ok(CriticTailRow::from_report(
-            &p.name,
-            policies[i].2,
-            policies[i].3,
+            &run.policy.name,
+            run.iteration,
+            run.distribution,
             &r,
         ))
     })?;
     // not part of the cached rollout: read from the checkpoint each time
-    let reports = reports
+    let rows = rows
         .into_iter()
-        .zip(&policies)
-        .map(|(row, p)| CriticTailRow {
-            terrain_level: p.4,
+        .zip(&runs)
+        .map(|(row, run)| CriticTailRow {
+            terrain_level: run.terrain_level,
             ..row
         })
         .collect();
@@ -226,8 +218,50 @@ pub fn evaluate_critic_tail(
         window,
         seed,
         methods: methods_of(spec, &labels),
-        rows: reports,
+        rows,
     })
+}
+
+/// One listed run as the section reads it: its final policy (named, for the
+/// cache key) and the checkpoint's learner, config and curriculum, read once.
+struct TailRun {
+    policy: NamedPolicy,
+    loaded: LoadedPolicy,
+    iteration: Option<usize>,
+    /// The critic is a value distribution (IQN), not a scalar.
+    distribution: bool,
+    /// Mean terrain level of the run's robots when the checkpoint was written.
+    terrain_level: f64,
+}
+
+impl TailRun {
+    fn load(spec: &ExperimentSpec, label: &str) -> Result<TailRun> {
+        let (policy, iteration) = load_final_policy(spec, label)?;
+        policy.critic().with_context(|| {
+            format!("critic_tail.methods: run {label:?} (the section reads its critic)")
+        })?;
+        let path = policy
+            .path
+            .clone()
+            .context("a run's policy comes from a file")?;
+        let loaded =
+            load_policy(&path).with_context(|| format!("run {label:?}: {}", path.display()))?;
+        let distribution = loaded.learner.config().critic.has_quantiles();
+        let terrain_level = mean_level(
+            loaded
+                .progress
+                .terrain_levels
+                .as_deref()
+                .unwrap_or_default(),
+        );
+        Ok(TailRun {
+            policy,
+            loaded,
+            iteration,
+            distribution,
+            terrain_level,
+        })
+    }
 }
 
 fn mean_level(levels: &[usize]) -> f64 {
