@@ -343,7 +343,7 @@ pub fn tail_markdown(t: Option<&CriticTail>, s: &mut String) {
     );
     let _ = writeln!(
         s,
-        "| Method | seeds | terrain level | falls | median drop (share of its value elsewhere) | tail / median drop | IQR before a fall / elsewhere |"
+        "| Method | seeds | terrain level | falls per run | median drop (share of its value elsewhere) | tail / median drop | IQR before a fall / elsewhere |"
     );
     let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
     for m in &t.methods {
@@ -355,7 +355,7 @@ pub fn tail_markdown(t: Option<&CriticTail>, s: &mut String) {
             m.label,
             rows.len(),
             seed_mean(&rows, |r| Some(r.terrain_level)).map_or("-".into(), |v| format!("{v:.2}")),
-            rows.iter().map(|r| r.falls).sum::<usize>(),
+            seed_mean(&rows, |r| Some(r.falls as f64)).map_or("-".into(), |v| format!("{v:.1}")),
             seed_mean(&rows, |r| r.median_drop_share())
                 .map_or("-".into(), |v| format!("{:.0}%", 100.0 * v)),
             seed_mean(&rows, |r| r.tail_over_median_drop())
@@ -473,6 +473,6 @@ mod tests {
         let mut md = String::new();
         tail_markdown(Some(&t), &mut md);
         assert!(md.contains("## What the critics saw before falls"), "{md}");
-        assert!(md.contains("| r | 1 | 4.50 | 3 |"), "{md}");
+        assert!(md.contains("| r | 1 | 4.50 | 3.0 |"), "{md}");
     }
 }
