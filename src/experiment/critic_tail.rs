@@ -199,7 +199,7 @@ pub fn evaluate_critic_tail(
         Ok(CriticTailRow::from_report(
             &run.policy.name,
             run.iteration,
-            run.distribution,
+            run.distribution(),
             &r,
         ))
     })?;
@@ -208,7 +208,7 @@ pub fn evaluate_critic_tail(
         .into_iter()
         .zip(&runs)
         .map(|(row, run)| CriticTailRow {
-            terrain_level: run.terrain_level,
+            terrain_level: run.terrain_level(),
             ..row
         })
         .collect();
@@ -223,15 +223,12 @@ pub fn evaluate_critic_tail(
 }
 
 /// One listed run as the section reads it: its final policy (named, for the
-/// cache key) and the checkpoint's learner, config and curriculum, read once.
+/// cache key) and the checkpoint's learner, config and curriculum, loaded
+/// before the jobs start instead of inside each job.
 struct TailRun {
     policy: NamedPolicy,
     loaded: LoadedPolicy,
     iteration: Option<usize>,
-    /// The critic is a value distribution (IQN), not a scalar.
-    distribution: bool,
-    /// Mean terrain level of the run's robots when the checkpoint was written.
-    terrain_level: f64,
 }
 
 impl TailRun {
@@ -246,21 +243,27 @@ impl TailRun {
             .context("a run's policy comes from a file")?;
         let loaded =
             load_policy(&path).with_context(|| format!("run {label:?}: {}", path.display()))?;
-        let distribution = loaded.learner.config().critic.has_quantiles();
-        let terrain_level = mean_level(
-            loaded
-                .progress
-                .terrain_levels
-                .as_deref()
-                .unwrap_or_default(),
-        );
         Ok(TailRun {
             policy,
             loaded,
             iteration,
-            distribution,
-            terrain_level,
         })
+    }
+
+    /// The critic is a value distribution (IQN), not a scalar.
+    fn distribution(&self) -> bool {
+        self.loaded.learner.config().critic.has_quantiles()
+    }
+
+    /// Mean terrain level of the run's robots when the checkpoint was written.
+    fn terrain_level(&self) -> f64 {
+        mean_level(
+            self.loaded
+                .progress
+                .terrain_levels
+                .as_deref()
+                .unwrap_or_default(),
+        )
     }
 }
 
