@@ -225,7 +225,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     let readme = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
     let preface_text = std::fs::read_to_string(preface(dir.path())).unwrap();
     let redrawn =
-        ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text)).unwrap();
+        ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text), None).unwrap();
     assert!(redrawn.len() > drawn_by_the_evaluation.len());
     assert!(
         read_all() == drawn_by_the_evaluation,
@@ -238,7 +238,12 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     );
     // a preface edited after the evaluation: the README takes it, nothing else changes
     let json = std::fs::read(dir.path().join("results-a/results.json")).unwrap();
-    ExperimentResults::redraw(&dir.path().join("results-a"), Some("Edited.\n".into())).unwrap();
+    ExperimentResults::redraw(
+        &dir.path().join("results-a"),
+        Some("Edited.\n".into()),
+        None,
+    )
+    .unwrap();
     let edited = std::fs::read_to_string(dir.path().join("results-a/README.md")).unwrap();
     assert!(
         edited.starts_with("# Results: slice\n\nEdited.\n"),
@@ -250,7 +255,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         json
     );
     let preface_text = std::fs::read_to_string(preface(dir.path())).unwrap();
-    ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text)).unwrap();
+    ExperimentResults::redraw(&dir.path().join("results-a"), Some(preface_text), None).unwrap();
     // method against method: every benchmark both ran, at rung 0 (no ladder here)
     assert!(
         readme.contains("At this budget the slice answers nothing."),
@@ -276,24 +281,40 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
     );
     // the meta controller ran the race alone
     assert_eq!(metrics("Meta", "RALL"), ["return_q25"], "{contrasts}");
+    let header: Vec<&str> = contrasts.lines().next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
     for r in &rows {
-        let [d, rlo, rhi, slo, shi]: [f64; 5] = std::array::from_fn(|k| r[5 + k].parse().unwrap());
-        assert!(rlo <= d && d <= rhi && slo <= shi, "{r:?}");
-        // RALL's two seeds against Baseline's one: two seed pairs
-        let seeds =
-            |k: usize| -> Vec<f64> { r[k].split(';').map(|x| x.parse().unwrap()).collect() };
+        let [d, rlo, rhi]: [f64; 3] = std::array::from_fn(|k| r[5 + k].parse().unwrap());
+        assert!(rlo <= d && d <= rhi, "{r:?}");
+        // RALL's two seeds against Baseline's one: two seed pairs, and no seed-level
+        // test (Welch needs two seeds a side): level, its columns empty
+        let seeds = |name: &str| -> Vec<f64> {
+            r[col(name)]
+                .split(';')
+                .map(|x| x.parse().unwrap())
+                .collect()
+        };
         if r[0] == "RALL" {
             assert_eq!(
-                (seeds(10).len(), seeds(11).len(), r[13]),
+                (
+                    seeds("first_seeds").len(),
+                    seeds("second_seeds").len(),
+                    r[col("seed_pairs")]
+                ),
                 (2, 1, "2"),
                 "{r:?}"
             );
+            assert_eq!(r[col("welch_p")], "", "{r:?}");
+            assert_eq!(r[col("verdict")], "level", "{r:?}");
         }
         // on TTF and platform every seed has as many cells: the difference is that
         // of the seeds' means
         if r[3] != "return_q25" {
             let m = |v: Vec<f64>| v.iter().sum::<f64>() / v.len() as f64;
-            assert!((d - (m(seeds(10)) - m(seeds(11)))).abs() < 2e-3, "{r:?}");
+            assert!(
+                (d - (m(seeds("first_seeds")) - m(seeds("second_seeds")))).abs() < 2e-3,
+                "{r:?}"
+            );
         }
     }
     // ... and the seeds' TTF is the by-method table's over its cells
@@ -308,7 +329,7 @@ fn an_experiment_trains_then_skips_and_evaluates_reproducibly() {
         .iter()
         .find(|r| r[0] == "RALL" && r[3] == "ttf")
         .unwrap();
-    let seeds_mean: f64 = ttf_row[10]
+    let seeds_mean: f64 = ttf_row[col("first_seeds")]
         .split(';')
         .map(|x| x.parse::<f64>().unwrap())
         .sum::<f64>()

@@ -42,6 +42,13 @@ pub struct ExperimentArgs {
     /// current code (nothing is evaluated) and exit.
     #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only", "ship"])]
     pub redraw: bool,
+    /// Print, from the between-seed spread in the file's results_dir, the seeds per
+    /// method Welch's test needs for 80% power on the `[verdicts]` contrasts, and exit.
+    #[arg(long, conflicts_with_all = ["status", "train_only", "eval_only", "ship", "redraw"])]
+    pub power: bool,
+    /// With --power: also the seeds needed to detect this difference (the metric's units).
+    #[arg(long, value_name = "DIFFERENCE", requires = "power")]
+    pub effect: Option<f64>,
     /// With --train-only: train only the run with this label (repeat it), so that
     /// several runs of one experiment train side by side, one process each.
     #[arg(long = "run", value_name = "LABEL", requires = "train_only")]
@@ -80,8 +87,17 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         return ship_all(&spec, &args.file);
     }
     if args.redraw {
-        for f in ExperimentResults::redraw(&spec.results_dir, spec.preface_text()?)? {
+        for f in ExperimentResults::redraw(&spec.results_dir, spec.preface_text()?, Some(&spec))? {
             println!("{}", f.display());
+        }
+        return Ok(());
+    }
+    if args.power {
+        let results = ExperimentResults::read(&spec.results_dir)?;
+        for line in
+            crate::experiment::verdicts::power_lines(&spec, &results.contrasts, args.effect)?
+        {
+            println!("{line}");
         }
         return Ok(());
     }

@@ -1,15 +1,15 @@
 //! Method against method (`[contrasts]`): for each named pair, benchmark and rung,
-//! the difference of the two methods' pooled numbers (the robustness curves'), with
-//! two intervals that answer different questions:
-//! - over robots: each seed's robots resampled within their cells, the trained
-//!   seeds kept as they are; it says whether these policies differ, not whether
-//!   the methods would with other seeds;
-//! - over seeds and robots: each method's seeds resampled with replacement, then
-//!   robots within each drawn seed (a two-level bootstrap); it carries the
-//!   seed-to-seed spread of training. With three seeds it is coarse and somewhat
-//!   narrow (a bootstrap over n units underestimates their spread by (n-1)/n), so
-//!   every seed's own number and the count of seed pairs in which the first method
-//!   is ahead are reported beside it.
+//! the difference of the two methods' pooled numbers (the robustness curves'), judged
+//! at two levels that answer different questions:
+//! - over seeds, the verdict: each seed's number (its robots' statistic) is one unit,
+//!   and Welch's t-test on those numbers (with the exact permutation test over seed
+//!   labels beside it) says whether the methods would differ with other seeds. Its
+//!   false-positive rate holds at 3 seeds and more (`tests/verdict_null.rs`); every
+//!   contrast here is exploratory, unadjusted for the others (`[verdicts]` holds the
+//!   pre-registered primary and the Holm-adjusted families);
+//! - over robots, a description: each seed's robots resampled within their cells, the
+//!   trained seeds kept as they are; it says whether these trained policies differ,
+//!   never whether the methods do.
 //!
 //! Higher is more robust on every benchmark (TTF, platform success, race return
 //! q0.25), so a positive difference favours the first method.
@@ -29,6 +29,7 @@ use super::spec::ExperimentSpec;
 use super::stats::{cell_seed, percentile, Estimate};
 use crate::eval::report::csv_field;
 use crate::eval::{PlatformReport, RaceReport, TtfReport};
+use crate::stats::seed_test::{permutation_p, welch, Verdict, Welch};
 
 /// `[contrasts]`: the pairs of methods to compare, each `[first, second]` by the
 /// label of a run (or meta controller) of the method; the first minus the second.
@@ -88,12 +89,19 @@ pub struct Contrast {
     pub second: String,
     /// The difference with its interval over robots (seeds as trained).
     pub over_robots: Estimate,
-    /// The same difference with its interval over seeds and robots.
-    pub over_seeds: Estimate,
     /// Each seed's own number, in the experiment file's order.
     pub first_seeds: Vec<f64>,
     pub second_seeds: Vec<f64>,
+    /// The run label of each number in `first_seeds` and `second_seeds` (empty in
+    /// results written before labels were kept: then the method's seeds in file order).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub first_labels: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub second_labels: Vec<String>,
 }
+
+/// The level of every contrast's seed-level interval (95%), its test's alpha 0.05.
+pub const CONTRAST_LEVEL: f64 = 0.95;
 
 impl Contrast {
     /// Seed pairs (one of each method) in which the first method is ahead, and all pairs.
@@ -106,15 +114,24 @@ impl Contrast {
         (ahead, self.first_seeds.len() * self.second_seeds.len())
     }
 
-    /// `ahead`, `behind` (the interval over seeds and robots excludes 0) or `level`.
+    /// Welch's test on the seeds' numbers (`None` under two seeds on either side).
+    pub fn welch(&self) -> Option<Welch> {
+        welch(&self.first_seeds, &self.second_seeds, CONTRAST_LEVEL)
+    }
+
+    /// The exact permutation test over seed labels.
+    pub fn permutation_p(&self) -> Option<f64> {
+        permutation_p(&self.first_seeds, &self.second_seeds)
+    }
+
+    /// `ahead`, `behind` (Welch's interval over seeds excludes 0) or `level` (also
+    /// with too few seeds to test).
     pub fn verdict(&self) -> &'static str {
-        if self.over_seeds.lo > 0.0 {
-            "ahead"
-        } else if self.over_seeds.hi < 0.0 {
-            "behind"
-        } else {
-            "level"
-        }
+        self.welch()
+            .map_or(Verdict::Level, |w| {
+                Verdict::from_p(w.difference, w.p, 1.0 - CONTRAST_LEVEL)
+            })
+            .as_str()
     }
 }
 
@@ -188,13 +205,14 @@ struct Metric<'a> {
     stat: Statistic,
 }
 
-/// Method `m`'s strata per seed (`strata(seed label)`), seeds without any left out.
-fn by_seed(m: &Method, strata: impl Fn(&String) -> Vec<Vec<f64>>) -> BySeed {
+/// Method `m`'s strata per seed (`strata(seed label)`) with the seed's label, seeds
+/// without any left out.
+fn by_seed(m: &Method, strata: impl Fn(&String) -> Vec<Vec<f64>>) -> (BySeed, Vec<String>) {
     m.seeds
         .iter()
-        .map(strata)
-        .filter(|s| s.iter().any(|c| !c.is_empty()))
-        .collect()
+        .map(|l| (strata(l), l.clone()))
+        .filter(|(s, _)| s.iter().any(|c| !c.is_empty()))
+        .unzip()
 }
 
 /// The contrast of methods `a` and `b` (labels of one of their runs) on metric
@@ -208,7 +226,7 @@ fn contrast(
     let (benchmark, metric) = m.name;
     let find = |l: &String| m.methods.iter().find(|x| x.seeds.contains(l));
     let (ma, mb) = (find(a)?, find(b)?);
-    let (ua, ub) = (by_seed(ma, &m.strata), by_seed(mb, &m.strata));
+    let ((ua, la), (ub, lb)) = (by_seed(ma, &m.strata), by_seed(mb, &m.strata));
     if ua.is_empty() || ub.is_empty() {
         return None;
     }
@@ -217,7 +235,7 @@ fn contrast(
         "contrast/{benchmark}/{metric}/{}/{}/{severity}",
         ma.label, mb.label
     );
-    let (over_robots, over_seeds) = intervals(&ua, &ub, stat, r, &name);
+    let over_robots = over_robots(&ua, &ub, stat, r, &name);
     Some(Contrast {
         benchmark: benchmark.into(),
         metric: metric.into(),
@@ -225,65 +243,48 @@ fn contrast(
         first: ma.label.clone(),
         second: mb.label.clone(),
         over_robots,
-        over_seeds,
         first_seeds: ua.iter().map(|s| stat(s)).collect(),
         second_seeds: ub.iter().map(|s| stat(s)).collect(),
+        first_labels: la,
+        second_labels: lb,
     })
 }
 
-/// The difference `stat(a) - stat(b)` with its interval over robots (seeds as
-/// they are) and over seeds and robots, each bootstrap seeded by `name`.
-fn intervals(
-    a: &BySeed,
-    b: &BySeed,
-    stat: Statistic,
-    r: Resampling,
-    name: &str,
-) -> (Estimate, Estimate) {
+/// The difference `stat(a) - stat(b)` with its percentile bootstrap interval over
+/// robots: every stratum's robots drawn with replacement, the seeds kept as they are
+/// (seeded by `name`, so the same data give the same interval).
+fn over_robots(a: &BySeed, b: &BySeed, stat: Statistic, r: Resampling, name: &str) -> Estimate {
     let value = stat(&a.concat()) - stat(&b.concat());
-    let interval = |resample_seeds: bool, what: &str| {
-        let mut rng = ChaCha8Rng::seed_from_u64(cell_seed(r.seed, &format!("{name}/{what}")));
-        let mut diffs: Vec<f64> = (0..r.resamples)
-            .map(|_| {
-                let sa = resample(a, resample_seeds, &mut rng);
-                let sb = resample(b, resample_seeds, &mut rng);
-                stat(&sa) - stat(&sb)
-            })
-            .collect();
-        diffs.sort_by(f64::total_cmp);
-        let alpha = (1.0 - r.level) / 2.0;
-        Estimate {
-            value,
-            lo: percentile(&diffs, alpha),
-            hi: percentile(&diffs, 1.0 - alpha),
-        }
-    };
-    (interval(false, "robots"), interval(true, "seeds"))
+    let mut rng = ChaCha8Rng::seed_from_u64(cell_seed(r.seed, &format!("{name}/robots")));
+    let mut diffs: Vec<f64> = (0..r.resamples)
+        .map(|_| stat(&resample_robots(a, &mut rng)) - stat(&resample_robots(b, &mut rng)))
+        .collect();
+    diffs.sort_by(f64::total_cmp);
+    let alpha = (1.0 - r.level) / 2.0;
+    Estimate {
+        value,
+        lo: percentile(&diffs, alpha),
+        hi: percentile(&diffs, 1.0 - alpha),
+    }
 }
 
-/// One bootstrap draw of a method's strata: its seeds as they are or drawn with
-/// replacement (`resample_seeds`), then every stratum's units drawn with replacement.
-fn resample(seeds: &BySeed, resample_seeds: bool, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
-    let n = seeds.len();
-    let mut out = Vec::new();
-    for k in 0..n {
-        let seed = if resample_seeds {
-            &seeds[rng.gen_range(0..n)]
-        } else {
-            &seeds[k]
-        };
-        for stratum in seed {
+/// One bootstrap draw of a method's strata: every seed as it is, every stratum's
+/// units drawn with replacement.
+fn resample_robots(seeds: &BySeed, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
+    seeds
+        .iter()
+        .flatten()
+        .map(|stratum| {
             let m = stratum.len();
-            out.push((0..m).map(|_| stratum[rng.gen_range(0..m)]).collect());
-        }
-    }
-    out
+            (0..m).map(|_| stratum[rng.gen_range(0..m)]).collect()
+        })
+        .collect()
 }
 
 /// `contrasts.csv`: a row per pair, metric and rung.
 pub fn contrasts_csv(rows: &[Contrast]) -> String {
     let mut s = String::from(
-        "first,second,benchmark,metric,severity,difference,robots_lo,robots_hi,seeds_lo,seeds_hi,first_seeds,second_seeds,seed_pairs_ahead,seed_pairs,verdict\n",
+        "first,second,benchmark,metric,severity,difference,robots_lo,robots_hi,seed_mean_difference,welch_lo,welch_hi,welch_df,welch_p,permutation_p,first_seeds,second_seeds,seed_pairs_ahead,seed_pairs,verdict\n",
     );
     let list = |v: &[f64]| {
         v.iter()
@@ -293,9 +294,18 @@ pub fn contrasts_csv(rows: &[Contrast]) -> String {
     };
     for c in rows {
         let (ahead, pairs) = c.pairs_ahead();
+        let welch = c.welch().map_or(",,,,".into(), |w| {
+            format!(
+                "{:.4},{:.4},{:.4},{:.2},{:.4}",
+                w.difference, w.lo, w.hi, w.df, w.p
+            )
+        });
+        let perm = c
+            .permutation_p()
+            .map_or(String::new(), |p| format!("{p:.4}"));
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{ahead},{pairs},{}",
+            "{},{},{},{},{},{:.4},{:.4},{:.4},{welch},{perm},{},{},{ahead},{pairs},{}",
             csv_field(&c.first),
             csv_field(&c.second),
             c.benchmark,
@@ -304,8 +314,6 @@ pub fn contrasts_csv(rows: &[Contrast]) -> String {
             c.over_robots.value,
             c.over_robots.lo,
             c.over_robots.hi,
-            c.over_seeds.lo,
-            c.over_seeds.hi,
             list(&c.first_seeds),
             list(&c.second_seeds),
             c.verdict()
@@ -348,8 +356,8 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
             pairs.push((&c.first, &c.second));
         }
     }
-    let _ = writeln!(s, "## Method against method\n");
-    let _ = writeln!(s, "Each pair's difference, first minus second (higher is more robust on every benchmark), on every rung: the difference of the two methods' numbers in the robustness curves, with a 95% interval over robots (each seed's robots resampled within their cells; whether these trained policies differ) and one over seeds and robots (each method's seeds drawn with replacement, then robots within each drawn seed; whether the methods would differ with other seeds; with three seeds it is coarse and a little narrow), every seed's own number, and in how many seed pairs the first method is ahead. A method is called ahead or behind on a rung only when the interval over seeds and robots excludes 0.\n");
+    let _ = writeln!(s, "## Method against method (exploratory)\n");
+    let _ = writeln!(s, "Each pair's difference, first minus second (higher is more robust on every benchmark), on every rung, over every seed. The verdict is Welch's t-test on the seeds' own numbers (the seed is the unit; 95% interval, p, and the exact permutation test over seed labels beside it): a method is called ahead or behind on a rung only when Welch's interval excludes 0. These contrasts are exploratory: none is adjusted for the others, so about one in twenty true nulls is called by chance. The interval over robots (each seed's robots resampled within their cells) describes these trained policies, never the methods.\n");
     for &(a, b) in &pairs {
         let these: Vec<&Contrast> = rows
             .iter()
@@ -378,9 +386,9 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
         let _ = writeln!(s);
         let _ = writeln!(
             s,
-            "| benchmark | rung | difference [over robots] | [over seeds and robots] | {a}: seeds | {b}: seeds | seed pairs ahead |"
+            "| benchmark | rung | difference [over robots] | seeds: Welch 95% | p (Welch / permutation) | {a}: seeds | {b}: seeds | seed pairs ahead |"
         );
-        let _ = writeln!(s, "|---|---:|---:|---:|---|---|---:|");
+        let _ = writeln!(s, "|---|---:|---:|---:|---|---|---|---:|");
         for (metric, title, d) in METRICS {
             for c in these.iter().filter(|c| c.metric == metric) {
                 let list = |v: &[f64]| {
@@ -390,15 +398,20 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
                         .join(", ")
                 };
                 let (ahead, n) = c.pairs_ahead();
+                let (interval, p) = c.welch().map_or(("-".into(), "-".into()), |w| {
+                    (
+                        format!("{:+.d$} [{:+.d$}, {:+.d$}]", w.difference, w.lo, w.hi),
+                        format!("{:.3}", w.p),
+                    )
+                });
+                let perm = c.permutation_p().map_or("-".into(), |p| format!("{p:.3}"));
                 let _ = writeln!(
                     s,
-                    "| {title} | {} | {:+.d$} [{:+.d$}, {:+.d$}] | [{:+.d$}, {:+.d$}] | {} | {} | {ahead} / {n} |",
+                    "| {title} | {} | {:+.d$} [{:+.d$}, {:+.d$}] | {interval} | {p} / {perm} | {} | {} | {ahead} / {n} |",
                     c.severity,
                     c.over_robots.value,
                     c.over_robots.lo,
                     c.over_robots.hi,
-                    c.over_seeds.lo,
-                    c.over_seeds.hi,
                     list(&c.first_seeds),
                     list(&c.second_seeds),
                 );
@@ -417,24 +430,14 @@ mod tests {
     }
 
     #[test]
-    fn resampling_seeds_draws_whole_seeds_and_keeps_their_count() {
-        let s = seeds(&[&[1.0; 5], &[2.0; 5], &[3.0; 5]]);
+    fn resampling_robots_keeps_every_seed_and_its_cells() {
+        let s = seeds(&[&[1.0; 5], &[2.0, 3.0, 4.0], &[3.0; 2]]);
         let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let mut saw_repeat = false;
-        for _ in 0..50 {
-            let d = resample(&s, true, &mut rng);
-            assert_eq!(d.len(), 3);
-            // a drawn seed keeps its own units: every stratum is constant
-            for st in &d {
-                assert!(st.iter().all(|&x| x == st[0]));
-            }
-            let firsts: Vec<f64> = d.iter().map(|st| st[0]).collect();
-            saw_repeat |= firsts[0] == firsts[1] || firsts[1] == firsts[2];
-        }
-        assert!(saw_repeat, "seeds are drawn with replacement");
-        // without seed resampling each seed stays in place
-        let d = resample(&s, false, &mut rng);
-        assert_eq!(d, s.concat());
+        let d = resample_robots(&s, &mut rng);
+        assert_eq!(d.len(), 3);
+        assert_eq!(d[0], vec![1.0; 5]);
+        assert!(d[1].len() == 3 && d[1].iter().all(|x| [2.0, 3.0, 4.0].contains(x)));
+        assert_eq!(d[2], vec![3.0; 2]);
     }
 
     /// Robots around `centre`, spread +-0.05.
@@ -443,31 +446,22 @@ mod tests {
     }
 
     #[test]
-    fn seeds_that_disagree_widen_the_interval_over_seeds_only() {
-        // A's seeds at 0.9, 0.5, 0.7 (mean 0.7); B's three at 0.6: A is ahead on
-        // these robots, but one of A's seeds is behind every B seed
+    fn the_interval_over_robots_ignores_seeds_that_disagree() {
+        // A's seeds at 0.9, 0.5, 0.7 (mean 0.7); B's three at 0.6: these robots
+        // say A is ahead, one of A's seeds is behind every B seed
         let a: BySeed = [0.9, 0.5, 0.7].iter().map(|&c| vec![robots(c)]).collect();
         let b: BySeed = [0.6, 0.6, 0.6].iter().map(|&c| vec![robots(c)]).collect();
         let r = Resampling::default();
-        let (robots_iv, seeds_iv) = intervals(&a, &b, mean_of_means, r, "t");
-        assert!((robots_iv.value - 0.1).abs() < 1e-9, "{robots_iv:?}");
-        assert_eq!(robots_iv.value, seeds_iv.value);
-        assert!(robots_iv.lo > 0.05 && robots_iv.hi < 0.15, "{robots_iv:?}");
-        assert!(seeds_iv.lo < 0.0 && seeds_iv.hi > 0.15, "{seeds_iv:?}");
+        let iv = over_robots(&a, &b, mean_of_means, r, "t");
+        assert!((iv.value - 0.1).abs() < 1e-9, "{iv:?}");
+        assert!(iv.lo > 0.05 && iv.hi < 0.15, "{iv:?}");
         // reproducible, and another cell's name draws differently
-        assert_eq!(
-            intervals(&a, &b, mean_of_means, r, "t"),
-            (robots_iv, seeds_iv)
-        );
-        assert_ne!(intervals(&a, &b, mean_of_means, r, "u").1, seeds_iv);
-        // seeds that agree: the interval over seeds excludes 0 too
-        let a2: BySeed = [0.7, 0.7, 0.7].iter().map(|&c| vec![robots(c)]).collect();
-        let (_, agree) = intervals(&a2, &b, mean_of_means, r, "t");
-        assert!(agree.lo > 0.05, "{agree:?}");
+        assert_eq!(over_robots(&a, &b, mean_of_means, r, "t"), iv);
+        assert_ne!(over_robots(&a, &b, mean_of_means, r, "u"), iv);
     }
 
     #[test]
-    fn pairs_count_the_seeds_and_the_verdict_reads_the_seed_interval() {
+    fn pairs_count_the_seeds_and_the_verdict_is_welch_on_seed_numbers() {
         let c = Contrast {
             benchmark: "ttf".into(),
             metric: "ttf".into(),
@@ -479,15 +473,25 @@ mod tests {
                 lo: 0.05,
                 hi: 0.15,
             },
-            over_seeds: Estimate {
-                value: 0.1,
-                lo: -0.02,
-                hi: 0.2,
-            },
             first_seeds: vec![0.5, 0.7, 0.6],
             second_seeds: vec![0.55, 0.45, 0.5],
+            first_labels: Vec::new(),
+            second_labels: Vec::new(),
         };
         assert_eq!(c.pairs_ahead(), (7, 9));
+        // Welch on (0.5, 0.7, 0.6) against (0.55, 0.45, 0.5): p about 0.2
         assert_eq!(c.verdict(), "level");
+        let w = c.welch().unwrap();
+        assert!(w.lo < 0.0 && w.hi > 0.1 && w.p > 0.1, "{w:?}");
+        let apart = Contrast {
+            first_seeds: vec![0.70, 0.72, 0.71],
+            ..c.clone()
+        };
+        assert_eq!(apart.verdict(), "ahead");
+        let behind = Contrast {
+            first_seeds: vec![0.30, 0.32, 0.31],
+            ..c
+        };
+        assert_eq!(behind.verdict(), "behind");
     }
 }

@@ -398,6 +398,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     results.phases = phases;
     results.rollouts = cache.dir().map(|_| cache_use);
     results.set_curves(spec, curves)?;
+    results.verdicts = super::verdicts::VerdictsResult::of(spec, &contrasts);
     results.contrasts = contrasts;
     results.critic_tail = critic_tail;
     results.preface = spec.preface_text()?;

@@ -23,6 +23,7 @@ pub mod spec;
 pub mod stats;
 mod status;
 mod training;
+pub mod verdicts;
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;

@@ -1,10 +1,10 @@
 //! Each method over its training seeds. Runs that share a `name` in the experiment
 //! file (`rall-eta0.5` seeds 1-3) are one method; its number weights every seed
 //! equally (the mean of the seeds' means; the race: quantiles of the seeds' returns
-//! pooled), with a bootstrap that resamples robots within each seed. The seeds' own
-//! values travel with it, so the spread between seeds stays visible: with two or three seeds
-//! an interval over seeds would mean little, and the one over robots does not cover
-//! what another seed would do.
+//! pooled), with a bootstrap that resamples robots within each seed: a description of
+//! these trained policies, which does not cover what another seed would do. The seeds'
+//! own values travel with it, so the spread between seeds stays visible; whether two
+//! methods differ is decided on those values, one per seed (`contrasts`, `verdicts`).
 
 use serde::{Deserialize, Serialize};
 

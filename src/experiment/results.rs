@@ -184,6 +184,11 @@ pub struct ExperimentResults {
     /// With `[contrasts]`: each pair of methods on every benchmark and rung.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub contrasts: Vec<Contrast>,
+    /// With `[verdicts]`: the pre-registered primary and the families, tested on
+    /// `contrasts` (computed from them each time the results are written, never
+    /// stored in `results.json`).
+    #[serde(skip)]
+    pub verdicts: Option<super::verdicts::VerdictsResult>,
     /// The experiment's `preface` file, opening the README (read from the file
     /// each time the README is written, never stored in `results.json`).
     #[serde(skip)]
@@ -246,6 +251,7 @@ impl ExperimentResults {
             risk_signal: Vec::new(),
             critic_tail: None,
             contrasts: Vec::new(),
+            verdicts: None,
             preface: None,
             evaluation_time: None,
             phases: Vec::new(),

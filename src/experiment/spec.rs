@@ -55,6 +55,10 @@ pub struct ExperimentSpec {
     /// Pairs of methods compared rung by rung (`[contrasts]`); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrasts: Option<super::contrasts::ContrastsSpec>,
+    /// The pre-registered primary result and the Holm-adjusted families
+    /// (`[verdicts]`); absent: every contrast is exploratory.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdicts: Option<super::verdicts::VerdictsSpec>,
     /// A markdown file written by hand that opens the results' README (what the
     /// numbers below answer); `--redraw` takes its current text.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -417,6 +421,9 @@ impl ExperimentSpec {
         }
         if let Some(sel) = &self.selection {
             sel.validate(self.tracking.seed)?;
+        }
+        if let Some(v) = &self.verdicts {
+            v.validate(self)?;
         }
         if let Some(c) = &self.contrasts {
             c.validate(self)?;

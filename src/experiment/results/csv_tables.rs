@@ -26,6 +26,12 @@ impl ExperimentResults {
         if !self.contrasts.is_empty() {
             files.push(("contrasts.csv", contrasts_csv(&self.contrasts)));
         }
+        if let Some(v) = &self.verdicts {
+            files.push((
+                "verdicts.csv",
+                crate::experiment::verdicts::verdicts_csv(&v.rows),
+            ));
+        }
         if !self.checkpoint_spread.is_empty() {
             files.push(("checkpoints.csv", self.checkpoints_csv()));
         }

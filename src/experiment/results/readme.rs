@@ -101,6 +101,9 @@ impl ExperimentResults {
     pub fn markdown(&self) -> String {
         let mut s = String::new();
         let _ = writeln!(s, "# Results: {}\n", self.name);
+        if let Some(v) = &self.verdicts {
+            v.markdown(&mut s);
+        }
         if let Some(p) = &self.preface {
             let _ = writeln!(s, "{}\n", p.trim_end());
         }

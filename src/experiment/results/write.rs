@@ -24,7 +24,24 @@ impl ExperimentResults {
     /// the README, without evaluating anything: they are written into a staging
     /// folder, then renamed over the old ones. `results.json` and
     /// `evaluation_time.txt` stay as they are. Returns the files written.
-    pub fn redraw(dir: &Path, preface: Option<String>) -> Result<Vec<PathBuf>> {
+    pub fn redraw(
+        dir: &Path,
+        preface: Option<String>,
+        spec: Option<&crate::experiment::spec::ExperimentSpec>,
+    ) -> Result<Vec<PathBuf>> {
+        let mut results = ExperimentResults::read(dir)?;
+        results.preface = preface;
+        if let Some(spec) = spec {
+            results.verdicts =
+                crate::experiment::verdicts::VerdictsResult::of(spec, &results.contrasts);
+        }
+        let staging = fresh_staging(dir)?;
+        results.write_derived(&staging)?;
+        move_staged(&staging, dir, &["", "figures"])
+    }
+
+    /// The results stored in `dir`'s `results.json`.
+    pub fn read(dir: &Path) -> Result<ExperimentResults> {
         let json = dir.join("results.json");
         let text = std::fs::read_to_string(&json).with_context(|| {
             format!(
@@ -32,12 +49,8 @@ impl ExperimentResults {
                 json.display()
             )
         })?;
-        let mut results: ExperimentResults = serde_json::from_str(&text)
-            .with_context(|| format!("{} is not a results file of this version", json.display()))?;
-        results.preface = preface;
-        let staging = fresh_staging(dir)?;
-        results.write_derived(&staging)?;
-        move_staged(&staging, dir, &["", "figures"])
+        serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a results file of this version", json.display()))
     }
 
     /// The whole evaluation's time, then each phase's: wall-clock minutes and

@@ -1,5 +1,12 @@
 //! Means and order statistics, one definition for the evaluation (race quantiles, risk
-//! thresholds) and the experiment (bootstrap intervals, pooled methods, run pace).
+//! thresholds) and the experiment (bootstrap intervals, pooled methods, run pace); and the
+//! seed-level tests that decide whether one method beats another.
+//! - [`student_t`]: Student's t distribution (CDF and quantile).
+//! - [`seed_test`]: Welch's t, the exact permutation test over seed labels, Holm's
+//!   step-down and the power of a comparison, all on one number per seed.
+
+pub mod seed_test;
+pub mod student_t;
 
 /// Mean of `values` (NaN for none).
 pub fn mean(values: &[f64]) -> f64 {
