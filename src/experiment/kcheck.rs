@@ -360,6 +360,7 @@ mod tests {
         let c = CheckpointsSpec {
             last: 5,
             every: 100,
+            milestones: vec![1500],
         };
         assert_eq!(
             headline_iterations(&c, 4500).unwrap(),

@@ -102,6 +102,7 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         let keep = spec.checkpoints.clone().unwrap_or(spec::CheckpointsSpec {
             last: 5,
             every: 100,
+            milestones: Vec::new(),
         });
         ship_headline_checkpoints(spec, &keep, r, &rd, &dst)?;
         let p = &loaded.progress;
@@ -154,8 +155,8 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Actor-only copies of run `r`'s headline checkpoints (`c`) that its run
-/// directory holds, into `dst/checkpoints/`: what evaluating them needs.
+/// Actor-only copies of run `r`'s headline checkpoints and milestones (`c`) that
+/// its run directory holds, into `dst/checkpoints/`: what evaluating them needs.
 fn ship_headline_checkpoints(
     spec: &ExperimentSpec,
     c: &spec::CheckpointsSpec,
@@ -164,10 +165,7 @@ fn ship_headline_checkpoints(
     dst: &Path,
 ) -> Result<()> {
     let target = run_target(spec, r)?;
-    let Ok(iterations) = kcheck::headline_iterations(c, target) else {
-        return Ok(());
-    };
-    for it in iterations {
+    for it in shipped_iterations(c, target) {
         let name = format!("model_{it:06}.safetensors");
         let src = rd.root.join("checkpoints").join(&name);
         if src.exists() {
@@ -177,9 +175,36 @@ fn ship_headline_checkpoints(
     Ok(())
 }
 
+/// The iterations whose checkpoints a run of `target` iterations ships: its
+/// headline checkpoints, then its milestones before the target.
+fn shipped_iterations(c: &spec::CheckpointsSpec, target: usize) -> Vec<usize> {
+    let mut its = kcheck::headline_iterations(c, target).unwrap_or_default();
+    for &m in &c.milestones {
+        if m > 0 && m < target && !its.contains(&m) {
+            its.push(m);
+        }
+    }
+    its
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn milestones_ship_beside_the_headline_checkpoints() {
+        let c = spec::CheckpointsSpec {
+            last: 2,
+            every: 100,
+            milestones: vec![1500, 3000, 4500, 9000, 0],
+        };
+        assert_eq!(shipped_iterations(&c, 4500), vec![4500, 4400, 1500, 3000]);
+        let none = spec::CheckpointsSpec {
+            milestones: Vec::new(),
+            ..c
+        };
+        assert_eq!(shipped_iterations(&none, 4500), vec![4500, 4400]);
+    }
 
     #[test]
     fn shipping_removes_files_the_run_no_longer_has() {

@@ -71,6 +71,10 @@ pub struct ExperimentSpec {
 pub struct CheckpointsSpec {
     pub last: usize,
     pub every: usize,
+    /// Earlier iterations whose checkpoints `--ship` also keeps (actor-only), so that
+    /// the gap between methods can be measured along training; none by default.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub milestones: Vec<usize>,
 }
 
 /// Every table's methods on every listed rung of the severity ladder. Rung 0 is
