@@ -6,7 +6,8 @@
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
 //! - [`progress`]: the one look of the progress bars (training, evaluation).
-//! - [`stats`]: means and interpolated quantiles, one definition for `eval` and `experiment`.
+//! - [`stats`]: means and interpolated quantiles, one definition for `eval` and `experiment`;
+//!   the seed-level tests that decide between methods.
 //! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
 //! - [`memory`]: the process's allocator (large buffers on transparent huge pages).
 //! - `env`: one robot's task (observation groups, reward, risk, commands, terrain and its
@@ -26,19 +27,26 @@
 //!   `amx` and `bf16_avx512` (kernels), `adam`, `ppo` (the update), `storage` (rollout, GAE, IQN targets),
 //!   `risk` (distortions, quantile Huber), `normalizer`, `adaptation` (RMA phase 2),
 //!   `layout` (observation groups), `checkpoint` (safetensors), `collective` (sums across
-//!   ranks), `learner` (the facade the runner calls).
+//!   ranks), `critic` (the critic trait; `iqn`, `scalar`), `learner` (the facade the runner
+//!   calls).
 //! - `env`: `config` (the task as data), `observation`, `privileged`, `reward`, `risk`,
 //!   `state`, `single` (one robot: reset and step), `vec_env`, `scene`, `terrain`,
 //!   `heightfield`, `snapshot` (resume codec), `bench`.
 //! - `runner`: `train` (the `Trainer` loop), `setup` (fresh start or resume),
 //!   `run_dir` (files and lock), `job` (what crosses MPI ranks), `status` (bar and log
 //!   lines), `faults` (fault injection, divergence stop), `metrics`, `policy_file`,
-//!   `resume` (exact-resume state), `adapt` (RMA phase 2 in a run), `dist` (MPI world).
+//!   `resume` (exact-resume state), `adapt` (RMA phase 2 in a run), `dist` (MPI world),
+//!   `scaling` (`rall bench scaling`: where an iteration's time goes, projected to more cores).
 //! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,
-//!   `race`, `falls`, `severity`, `risk_calibration`, `report`.
-//! - `experiment`: `spec`, `selection`, `kcheck`, `stats`, `pooled`, `results`, `curves`,
-//!   `ladder`, `plots`, `curve_plots`.
-//! - `export`: `onnx` (the protobuf subset); `viz`: `episode`, `play`, `train`, `value`,
+//!   `race`, `falls`, `severity`, `risk_calibration`, `report`, `cache` (rollout cache),
+//!   `jobs` (parallel rollouts), `policy` (checkpoint and ONNX policies), `rall_graph`,
+//!   `sidecar` (outside policies' sidecars).
+//! - `experiment`: `spec`, `training`, `selection`, `final_policy`, `kcheck`, `evaluate`,
+//!   `stats`, `pooled`, `curves`, `ladder`, `contrasts`, `verdicts` (pre-registered
+//!   seed-level verdicts), `critic_tail`, `risk_signal`, `results` (`csv_tables`, `readme`,
+//!   `write`), `plots`, `curve_plots`, `ship`, `status`, `clock`.
+//! - `stats`: `seed_test` (Welch, permutation, Holm, power), `student_t`.
+//! - `export`: `onnx` (the protobuf subset), `deploy`; `viz`: `episode`, `play`, `train`, `value`,
 //!   `blueprint`, `sink`, `rrd`, `convert`; `cli`: one file per subcommand.
 //!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM, AMX and
