@@ -6,7 +6,8 @@
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
 //! - [`progress`]: the one look of the progress bars (training, evaluation).
-//! - [`stats`]: means and interpolated quantiles, one definition for `eval` and `experiment`.
+//! - [`stats`]: means, interpolated quantiles, estimates with intervals and the bootstrap,
+//!   one definition for `eval` and `experiment`.
 //! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
 //! - [`memory`]: the process's allocator (large buffers on transparent huge pages).
 //! - `env`: one robot's task (observation groups, reward, risk, commands, terrain and its
