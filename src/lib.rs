@@ -36,7 +36,8 @@
 //!   lines), `faults` (fault injection, divergence stop), `metrics`, `policy_file`,
 //!   `resume` (exact-resume state), `adapt` (RMA phase 2 in a run), `dist` (MPI world).
 //! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,
-//!   `race`, `falls`, `severity`, `risk_calibration`, `report`.
+//!   `race`, `falls`, `severity`, `risk_calibration`, `report`, `commands` (the
+//!   command-space safety map) and `commands_plot`.
 //! - `experiment`: `spec`, `selection`, `kcheck`, `stats`, `pooled`, `results`, `curves`,
 //!   `ladder`, `plots`, `curve_plots`.
 //! - `export`: `onnx` (the protobuf subset); `viz`: `episode`, `play`, `train`, `value`,
