@@ -6,8 +6,9 @@
 //! - [`learn`]: CVaR-PPO with an IQN critic; knows nothing of MuJoCo.
 //! - [`hash`]: FNV-1a, the crate's one stable hash (no dependencies).
 //! - [`progress`]: the one look of the progress bars (training, evaluation).
-//! - [`stats`]: means and interpolated quantiles, one definition for `eval` and `experiment`;
-//!   the seed-level tests that decide between methods.
+//! - [`stats`]: means, interpolated quantiles, estimates with intervals and the bootstrap,
+//!   one definition for `eval` and `experiment`; the seed-level tests that decide between
+//!   methods.
 //! - [`fsio`]: atomic whole-file writes ([`fsio::write_atomic`]) and rall's temp-file names.
 //! - [`memory`]: the process's allocator (large buffers on transparent huge pages).
 //! - `env`: one robot's task (observation groups, reward, risk, commands, terrain and its
@@ -40,7 +41,8 @@
 //! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,
 //!   `race`, `falls`, `severity`, `risk_calibration`, `report`, `cache` (rollout cache),
 //!   `jobs` (parallel rollouts), `policy` (checkpoint and ONNX policies), `rall_graph`,
-//!   `sidecar` (outside policies' sidecars).
+//!   `sidecar` (outside policies' sidecars), `commands` (the command-space safety map)
+//!   and `commands_plot`.
 //! - `experiment`: `spec`, `training`, `selection`, `final_policy`, `kcheck`, `evaluate`,
 //!   `stats`, `pooled`, `curves`, `ladder`, `contrasts`, `verdicts` (pre-registered
 //!   seed-level verdicts), `critic_tail`, `risk_signal`, `results` (`csv_tables`, `readme`,

@@ -6,7 +6,13 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 
 use crate::config::{worker_threads, TrainConfig};
+use crate::env::config::CommandConfig;
+use crate::eval::commands::parse_axis_values;
 use crate::eval::report::write_outputs;
+use crate::eval::{
+    evaluate_command_map, write_command_map_svg, AxisSpec, CommandGrid, CommandMapOptions,
+    SafetyThreshold, SeverityRung,
+};
 use crate::eval::{
     evaluate_platform, evaluate_race, evaluate_tracking_with_falls, evaluate_ttf, tracking_env,
     with_randomization, ActionMode, FallRecord, GroundKind, Ladder, Load, MetaArg, MetaConfig,
@@ -42,6 +48,136 @@ pub enum EvalCommand {
     /// everywhere else, in the checkpoint's own training env: does the
     /// distribution's lower tail move, does the IQR rise, before the robot falls?
     Falls(FallsArgs),
+    /// A command-space safety map: over a grid of the policy's command ranges (vx,
+    /// vy, yaw rate), robots holding each fixed command for one episode; per cell
+    /// the fall rate, the strict fall rate and the tracking scores with 95%
+    /// intervals, the worst cell and the share of safe cells.
+    Commands(CommandsArgs),
+}
+
+/// `rall eval commands`.
+#[derive(Debug, Args)]
+#[command(after_help = COMMANDS_AFTER_HELP)]
+pub struct CommandsArgs {
+    /// Checkpoint (.safetensors) written by `rall train` (an actor-only copy is fine).
+    #[arg(long, required_unless_present = "onnx", conflicts_with = "onnx")]
+    pub checkpoint: Option<PathBuf>,
+    /// An ONNX policy with its JSON sidecar POLICY.json beside it (see
+    /// docs/outside-policies.md), instead of a checkpoint.
+    #[arg(long, value_name = "POLICY.onnx")]
+    pub onnx: Option<PathBuf>,
+    /// Forward speeds evenly spaced over the policy's vx range, both ends included
+    /// (and 0 when the range spans it).
+    #[arg(long, value_name = "N", default_value = "7", value_parser = parse_count, allow_hyphen_values = true)]
+    pub vx_cells: usize,
+    /// Lateral speeds evenly spaced over the policy's vy range.
+    #[arg(long, value_name = "N", default_value = "5", value_parser = parse_count, allow_hyphen_values = true)]
+    pub vy_cells: usize,
+    /// Yaw rates evenly spaced over the policy's yaw-rate range.
+    #[arg(long, value_name = "N", default_value = "5", value_parser = parse_count, allow_hyphen_values = true)]
+    pub yaw_cells: usize,
+    /// Forward speeds to map instead (m/s), e.g. -1,-0.5,0,0.5,1.
+    #[arg(
+        long,
+        value_name = "LIST",
+        conflicts_with = "vx_cells",
+        allow_hyphen_values = true
+    )]
+    pub vx: Option<String>,
+    /// Lateral speeds to map instead (m/s).
+    #[arg(
+        long,
+        value_name = "LIST",
+        conflicts_with = "vy_cells",
+        allow_hyphen_values = true
+    )]
+    pub vy: Option<String>,
+    /// Yaw rates to map instead (rad/s).
+    #[arg(
+        long,
+        value_name = "LIST",
+        conflicts_with = "yaw_cells",
+        allow_hyphen_values = true
+    )]
+    pub yaw: Option<String>,
+    /// Robots per cell, one episode each.
+    #[arg(long, value_name = "N", default_value = "16", value_parser = parse_count, allow_hyphen_values = true)]
+    pub robots: usize,
+    /// Episode length in seconds (default: the checkpoint's, as `rall eval tracking`).
+    #[arg(long, value_name = "S", allow_hyphen_values = true)]
+    pub seconds: Option<f64>,
+    /// Seed of the robots (randomisation draws, noise) and of the ground; every
+    /// cell runs the same robots.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Worker threads (0 = all cores); the numbers do not depend on it.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Run every cell on this rung of the severity ladder: its friction, added mass
+    /// and pushes on its rough ground, as the TTF benchmark applies them (default:
+    /// flat ground, no pushes, the checkpoint's own randomisation).
+    #[arg(long, value_name = "N")]
+    pub severity: Option<usize>,
+    /// A severity ladder file (default: the built-in experiments/severity-ladder.toml).
+    #[arg(long, value_name = "FILE", requires = "severity")]
+    pub ladder: Option<PathBuf>,
+    /// A payload to carry: ball, frozen_arm or moving_arm (default none). A payload
+    /// part on the ground counts as a fall, as in the TTF benchmark.
+    #[arg(long)]
+    pub load: Option<String>,
+    /// A safe cell has a fall rate below this (percent) ...
+    #[arg(
+        long,
+        value_name = "PCT",
+        default_value_t = 5.0,
+        allow_hyphen_values = true
+    )]
+    pub max_falls_pct: f64,
+    /// ... and a linear tracking score of at least this.
+    #[arg(
+        long,
+        value_name = "SCORE",
+        default_value_t = 0.8,
+        allow_hyphen_values = true
+    )]
+    pub min_tracking: f64,
+    /// Write one row per cell (command, robots, falls, strict falls and the two
+    /// tracking scores with their intervals, safe) to this CSV file.
+    #[arg(long, value_name = "FILE")]
+    pub csv: Option<PathBuf>,
+    /// Draw the map to this SVG file: vx across, yaw rate up, one panel per vy,
+    /// colour = fall rate, a black frame around each cell failing the threshold.
+    #[arg(long, value_name = "FILE.svg")]
+    pub figure: Option<PathBuf>,
+    /// Write the whole map (every cell and robot, the grid and the options) as JSON.
+    #[arg(long, value_name = "FILE")]
+    pub json: Option<PathBuf>,
+}
+
+const COMMANDS_AFTER_HELP: &str = "\
+Each cell runs --robots robots holding its command (vx, vy, yaw rate) for one episode with \
+the policy's own observation noise, PD and randomisation (on a --severity rung: the rung's \
+friction, added mass, pushes and rough ground); every cell runs the same robots. A fall is \
+the env's termination (trunk tilted past its limit or on the ground) or a payload part on \
+the ground; a strict fall is any non-foot part on the ground. Tracking is `rall eval \
+tracking`'s score (1 = perfect). Rates carry 95% Wilson intervals, tracking a 95% bootstrap \
+over robots. A cell is safe when its fall rate is below --max-falls-pct and its linear \
+tracking at least --min-tracking (point estimates: at 5% and 16 robots, one fall fails a \
+cell). Printed: the worst cell (most falls, then the lowest tracking), the safe share, and a \
+table per vy value. Commands outside the policy's training ranges (or slower than the speed \
+training zeroed) are allowed: they run, with a warning, and are marked ~ in the table and \
+commanded_in_training = false in the CSV.
+
+Example: rall eval commands --checkpoint policies/time-to-walk.safetensors --threads 1 \
+--figure map.svg --csv map.csv";
+
+/// A count given on the command line: a whole number, never negative.
+fn parse_count(s: &str) -> std::result::Result<usize, String> {
+    match s.trim().parse::<i64>() {
+        Ok(n) if n < 0 => Err("a count cannot be negative".into()),
+        Ok(n) => usize::try_from(n).map_err(|e| e.to_string()),
+        Err(_) => Err("expected a whole number".into()),
+    }
 }
 
 #[derive(Debug, Args)]
@@ -248,6 +384,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         EvalCommand::Platform(a) => platform(a),
         EvalCommand::Race(a) => race(a),
         EvalCommand::Falls(a) => falls(a),
+        EvalCommand::Commands(a) => commands(a),
     }
 }
 
@@ -897,4 +1034,120 @@ fn race(a: &RaceArgs) -> Result<()> {
         }
         Ok((report.markdown(), report.csv(), report.json(), points))
     })
+}
+
+/// The grid of `a` over the policy's command `ranges`.
+fn command_grid(a: &CommandsArgs, ranges: &CommandConfig) -> Result<CommandGrid> {
+    let axis = |values: &Option<String>, flag: &str, cells: usize| -> Result<AxisSpec> {
+        Ok(match values {
+            Some(text) => AxisSpec::Values(parse_axis_values(flag, text)?),
+            None => AxisSpec::Cells(cells),
+        })
+    };
+    let vx = axis(&a.vx, "--vx", a.vx_cells)?;
+    let vy = axis(&a.vy, "--vy", a.vy_cells)?;
+    let yaw = axis(&a.yaw, "--yaw", a.yaw_cells)?;
+    CommandGrid::from_specs([&vx, &vy, &yaw], ranges)
+}
+
+/// The map's options from `a`, the severity rung read from its ladder.
+fn command_map_options(a: &CommandsArgs) -> Result<CommandMapOptions> {
+    let severity = match a.severity {
+        None => None,
+        Some(index) => {
+            let ladder = match &a.ladder {
+                Some(path) => Ladder::from_toml_file(path)?,
+                None => Ladder::builtin(),
+            };
+            let rung = ladder.rung(index).context("--severity")?.clone();
+            Some(SeverityRung { index, rung })
+        }
+    };
+    let options = CommandMapOptions {
+        robots: a.robots,
+        seed: a.seed,
+        episode_length_s: a.seconds,
+        load: a
+            .load
+            .as_deref()
+            .map(parse_load)
+            .transpose()
+            .context("--load")?
+            .unwrap_or(Load::None),
+        severity,
+        ..CommandMapOptions::default()
+    };
+    Ok(options)
+}
+
+fn commands(a: &CommandsArgs) -> Result<()> {
+    let threshold = SafetyThreshold::new(a.max_falls_pct, a.min_tracking)?;
+    let options = command_map_options(a)?;
+    let path = a
+        .checkpoint
+        .as_ref()
+        .or(a.onnx.as_ref())
+        .context("give --checkpoint FILE or --onnx FILE")?;
+    let policy = NamedPolicy::load("policy", path)?;
+    let ranges = &policy.env.commands;
+    let grid = command_grid(a, ranges)?;
+    for w in grid.untrained_commands(ranges) {
+        eprintln!("warning: {w}; its cells run and are marked ~");
+    }
+    eprintln!(
+        "mapping {} cells ({} vx x {} vy x {} yaw rate) of {} robots each: {}, seed {}",
+        grid.len(),
+        grid.vx_mps.len(),
+        grid.vy_mps.len(),
+        grid.yaw_rate_rad_s.len(),
+        options.robots,
+        options.describe(),
+        options.seed
+    );
+    let map = evaluate_command_map(
+        &policy.policy,
+        &policy.env,
+        &grid,
+        &options,
+        worker_threads(a.threads),
+    )?;
+    println!("{}", map.summary(&threshold));
+    let seconds = map.episode_steps as f64 * policy.env.control.policy_dt_s();
+    let show = |r: [f64; 2]| format!("[{}, {}]", r[0], r[1]);
+    println!(
+        "\npolicy {} ({}): command ranges vx {} m/s, vy {} m/s, yaw rate {} rad/s",
+        path.display(),
+        if is_onnx(path) {
+            "ONNX, env from its sidecar"
+        } else {
+            "checkpoint"
+        },
+        show(ranges.vx_mps),
+        show(ranges.vy_mps),
+        show(ranges.yaw_rate_rad_s)
+    );
+    println!(
+        "{} cells x {} robots, one {seconds:.1} s episode ({} steps) each; {}; seed {}; falls with 95% Wilson intervals, tracking with 95% bootstrap over robots",
+        map.cells.len(),
+        options.robots,
+        map.episode_steps,
+        options.describe(),
+        options.seed
+    );
+    println!("\n{}", map.table(&threshold));
+    println!("{FALL_DEFINITION}");
+    if let Some(file) = &a.csv {
+        crate::fsio::write_atomic(file, map.to_csv(&threshold).as_bytes())?;
+        println!("cells -> {}", file.display());
+    }
+    if let Some(file) = &a.json {
+        let text = serde_json::to_string_pretty(&map)? + "\n";
+        crate::fsio::write_atomic(file, text.as_bytes())?;
+        println!("map -> {}", file.display());
+    }
+    if let Some(file) = &a.figure {
+        write_command_map_svg(&map, &threshold, file)?;
+        println!("figure -> {}", file.display());
+    }
+    Ok(())
 }

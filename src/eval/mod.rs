@@ -8,8 +8,13 @@
 //!   finished rollouts on disk, so a long evaluation resumes.
 //! - [`rollout`]: N robots of a scenario on a `VecEnv` under a policy's mean action.
 //! - [`severity`]: the severity ladder (rung 0 = the paper's protocol, harder above).
+//! - [`commands`]: the command-space safety map (falls and tracking per fixed
+//!   command over a grid of the policy's command ranges); [`commands_plot`]: its
+//!   SVG heat map.
 
 pub mod cache;
+pub mod commands;
+pub mod commands_plot;
 pub mod falls;
 pub mod ground;
 pub mod jobs;
@@ -28,6 +33,11 @@ pub mod tracking;
 pub mod ttf;
 
 pub use cache::{CacheUse, RolloutCache};
+pub use commands::{
+    evaluate_command_map, evaluate_command_map_cached, AxisSpec, CellResult, CommandGrid,
+    CommandMap, CommandMapOptions, SafetyThreshold, SeverityRung,
+};
+pub use commands_plot::write_command_map_svg;
 pub use falls::{critic_before_falls, FallReport, QuantileMeans, FALL_TAUS};
 pub use platform::{evaluate_platform, DropOutcome, DropWatch, PlatformOptions, PlatformReport};
 pub use policy::{is_onnx, Actor, OnnxPolicy, OnnxRuntime, Policy};

@@ -33,7 +33,7 @@ use crate::sim::{Data, JointKind, Model, ObjKind};
 use nalgebra::Quaternion;
 
 /// What the robot carries.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Load {
     None,

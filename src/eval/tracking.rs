@@ -268,7 +268,7 @@ pub fn evaluate_tracking_with_falls(
 }
 
 /// Adds one step's tracking scores exp(-err^2 / sigma) of command `c`.
-fn score_step(
+pub(crate) fn score_step(
     robot: &mut RobotTracking,
     c: [f64; 3],
     s: &crate::env::state::RobotState,
