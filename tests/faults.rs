@@ -657,3 +657,65 @@ fn a_checkpoint_from_before_checksums_resumes_with_one_note_each() {
     let p = load_policy(&latest).unwrap();
     assert!(p.exact && p.progress.iteration == 3);
 }
+
+/// Waits up to `limit` for `child` to exit; `None` if it is still running.
+fn wait_for(child: &mut Child, limit: Duration) -> Option<std::process::ExitStatus> {
+    let start = Instant::now();
+    while start.elapsed() < limit {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    None
+}
+
+/// Sends SIGTERM to `child` and waits for it.
+fn terminate(child: &mut Child) {
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    if wait_for(child, Duration::from_secs(60)).is_none() {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+}
+
+#[test]
+fn two_trainings_started_together_in_one_run_dir_do_not_both_train() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 100_000);
+    let run = dir.path().join("run");
+    let train = |delay_ms: &str| {
+        Command::new(env!("CARGO_BIN_EXE_rall"))
+            .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+            .arg(&run)
+            .args(["--save-interval", "100000"])
+            .env("RALL_FAULT_LOCK_DELAY_MS", delay_ms)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // the first stops for 4 s in the middle of taking the lock; the second
+    // starts meanwhile and takes it at once
+    let mut first = train("4000");
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut second = train("0");
+    let first_status = wait_for(&mut first, Duration::from_secs(60));
+    let second_running = second.try_wait().unwrap().is_none();
+    terminate(&mut second);
+    let Some(first_status) = first_status else {
+        terminate(&mut first);
+        panic!("both trainings ran in one run directory");
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut first.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(!first_status.success(), "{err}");
+    assert!(
+        err.contains(&format!("is being trained by process {}", second.id())),
+        "the first is refused naming the second: {err}"
+    );
+    assert!(second_running, "the second trained on");
+    assert!(!run.join("train.lock").exists(), "the lock is released");
+}

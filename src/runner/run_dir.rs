@@ -179,45 +179,108 @@ struct Found {
 
 /// Held while a process trains in a run directory: `train.lock` with its pid.
 /// A lock whose process is gone (killed) is taken over.
+///
+/// The lock appears whole: the pid is written and synced to a file of this
+/// process's own (`train.lock.<pid>.tmp`), which is then hard-linked as
+/// `train.lock`; the link fails when the lock exists, so of two trainers
+/// starting together exactly one gets it, and nobody ever reads a lock without
+/// its pid. A dead holder's lock is removed under an exclusive `flock` on it,
+/// so two processes taking it over at once cannot both win.
 pub struct RunLock {
     path: PathBuf,
 }
 
+/// `RALL_FAULT_LOCK_DELAY_MS=<ms>`: sleep this long between preparing the lock
+/// and making it visible (widens the window two starting trainers race in).
+const LOCK_DELAY_VAR: &str = "RALL_FAULT_LOCK_DELAY_MS";
+
 impl RunLock {
     pub fn acquire(root: &Path) -> Result<RunLock> {
-        use std::io::Write as _;
         let path = root.join("train.lock");
-        for _ in 0..3 {
-            match std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(&path)
-            {
-                Ok(mut f) => {
-                    writeln!(f, "{}", std::process::id())
-                        .with_context(|| format!("writing {}", path.display()))?;
-                    return Ok(RunLock { path });
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let holder = std::fs::read_to_string(&path)
-                        .ok()
-                        .and_then(|t| t.trim().parse::<u32>().ok());
-                    if let Some(pid) = holder.filter(|pid| process_alive(*pid)) {
-                        anyhow::bail!(
-                            "{} is being trained by process {pid} ({} holds its pid): wait for it or stop it; remove the file only if that process is not rall",
-                            root.display(),
-                            path.display()
-                        );
+        let mine = write_pid_file(root)?;
+        let taken = (|| {
+            injected_lock_delay()?;
+            for _ in 0..3 {
+                match std::fs::hard_link(&mine, &path) {
+                    Ok(()) => return Ok(RunLock { path: path.clone() }),
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                        refuse_if_held(root, &path)?;
+                        remove_dead_lock(&path);
                     }
-                    // left by a process that died (kill -9): take it over
-                    let _ = std::fs::remove_file(&path);
-                }
-                Err(e) => {
-                    return Err(e).with_context(|| format!("creating {}", path.display()));
+                    Err(e) => {
+                        return Err(e).with_context(|| format!("creating {}", path.display()))
+                    }
                 }
             }
-        }
-        anyhow::bail!("could not take {}", path.display())
+            anyhow::bail!("could not take {}", path.display())
+        })();
+        let _ = std::fs::remove_file(&mine);
+        taken
+    }
+}
+
+/// This process's pid in `<root>/train.lock.<pid>.tmp`, synced: the lock to be.
+fn write_pid_file(root: &Path) -> Result<PathBuf> {
+    use std::io::Write as _;
+    let pid = std::process::id();
+    let tmp = root.join(format!("train.lock.{pid}.tmp"));
+    let write = || -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        writeln!(f, "{pid}")?;
+        f.sync_all()
+    };
+    write().with_context(|| format!("writing {}", tmp.display()))?;
+    Ok(tmp)
+}
+
+/// The delay of [`LOCK_DELAY_VAR`], if set (a malformed value is an error).
+fn injected_lock_delay() -> Result<()> {
+    let Ok(v) = std::env::var(LOCK_DELAY_VAR) else {
+        return Ok(());
+    };
+    let ms: u64 = v
+        .parse()
+        .map_err(|_| anyhow::anyhow!("{LOCK_DELAY_VAR}={v:?}: expected milliseconds"))?;
+    std::thread::sleep(std::time::Duration::from_millis(ms));
+    Ok(())
+}
+
+/// The pid a lock file holds, if it holds one.
+fn lock_holder(path: &Path) -> Option<u32> {
+    std::fs::read_to_string(path)
+        .ok()
+        .and_then(|t| t.trim().parse::<u32>().ok())
+}
+
+/// Refuses when the lock at `path` belongs to a live process.
+fn refuse_if_held(root: &Path, path: &Path) -> Result<()> {
+    if let Some(pid) = lock_holder(path).filter(|pid| process_alive(*pid)) {
+        anyhow::bail!(
+            "{} is being trained by process {pid} ({} holds its pid): wait for it or stop it; remove the file only if that process is not rall",
+            root.display(),
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// Removes the lock at `path` if it is still the dead holder's: under an
+/// exclusive `flock` on it, and only when `path` is still that very file and
+/// names no live process (another trainer may have replaced it meanwhile).
+fn remove_dead_lock(path: &Path) {
+    use std::os::unix::fs::MetadataExt as _;
+    let Ok(f) = std::fs::File::open(path) else {
+        return; // gone already: the next link attempt decides
+    };
+    if f.try_lock().is_err() {
+        return; // another process is removing it
+    }
+    let same_file = match (f.metadata(), std::fs::metadata(path)) {
+        (Ok(held), Ok(now)) => held.ino() == now.ino() && held.dev() == now.dev(),
+        _ => false,
+    };
+    if same_file && !lock_holder(path).is_some_and(process_alive) {
+        let _ = std::fs::remove_file(path);
     }
 }
 
@@ -267,6 +330,18 @@ mod tests {
         assert!(!dir.path().join("train.lock").exists());
         // a pid above any pid_max: its holder is gone
         std::fs::write(dir.path().join("train.lock"), "4294967295\n").unwrap();
-        let _again = RunLock::acquire(dir.path()).unwrap();
+        let again = RunLock::acquire(dir.path()).unwrap();
+        // the lock holds our pid, and its temp file is gone
+        let held = std::fs::read_to_string(dir.path().join("train.lock")).unwrap();
+        assert_eq!(held.trim(), std::process::id().to_string());
+        drop(again);
+        // a lock without a pid (not rall's: rall's never appears empty) is taken over
+        std::fs::write(dir.path().join("train.lock"), "").unwrap();
+        let _third = RunLock::acquire(dir.path()).unwrap();
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        assert_eq!(names, ["train.lock"]);
     }
 }
