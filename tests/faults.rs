@@ -719,3 +719,31 @@ fn two_trainings_started_together_in_one_run_dir_do_not_both_train() {
     assert!(second_running, "the second trained on");
     assert!(!run.join("train.lock").exists(), "the lock is released");
 }
+
+#[test]
+fn a_full_disk_during_the_metrics_append_leaves_whole_rows_and_names_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 3);
+    let run = dir.path().join("run");
+    // appends to metrics.csv: the header, row 1, then row 2 meets a full disk
+    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+        .arg(&run)
+        .env("RALL_FAULT_DISK_FULL", "metrics.csv:3")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a failed append stops the run: {stderr}");
+    let metrics = run.join("metrics.csv");
+    assert!(
+        stderr.contains(&metrics.display().to_string()) && stderr.contains("No space left"),
+        "the error names the file's full path and the cause: {stderr}"
+    );
+    let text = std::fs::read_to_string(&metrics).unwrap();
+    assert!(text.ends_with('\n'), "no half row: {text:?}");
+    assert_eq!(metric_iterations(&run), [1]);
+    // the run resumes from its last checkpoint with one row per iteration
+    let (ok, _, log) = rall_output(&["train", "--resume", run.to_str().unwrap()]);
+    assert!(ok, "{log}");
+    assert_eq!(metric_iterations(&run), [1, 2, 3]);
+}
