@@ -79,10 +79,13 @@ fn describe(path: &Path) -> Result<String> {
     let verified = read_checkpoint(path)?.verified;
     let p = load_policy(path)?;
     let bytes = std::fs::metadata(path)?.len();
-    let contents = match (p.actor_only, p.exact) {
-        (true, _) => "actor only: evaluates, never resumes",
-        (false, true) => "full: resumes bit for bit",
-        (false, false) => "full: resumes, not bit for bit (no runner state)",
+    let contents = match (p.actor_only, p.exact, verified) {
+        (true, _, _) => "actor only: evaluates, never resumes",
+        (false, true, true) => "full: resumes bit for bit",
+        (false, true, false) => {
+            "full: resumes, unverified (without checksums nothing shows the state is intact)"
+        }
+        (false, false, _) => "full: resumes, not bit for bit (no runner state)",
     };
     let learner = &p.config.learner;
     let critic = format!("{:?}", learner.critic).to_lowercase();
@@ -99,7 +102,7 @@ fn describe(path: &Path) -> Result<String> {
         if verified {
             "checksums verified"
         } else {
-            "no checksums (older file)"
+            "no checksums: unverified"
         },
     ))
 }
