@@ -114,11 +114,12 @@ pub fn copy_atomic(from: &Path, to: &Path) -> Result<()> {
 }
 
 /// Files of a run directory rall writes through a temp file.
-const RUN_FILES: [&str; 4] = [
+const RUN_FILES: [&str; 5] = [
     "latest.safetensors",
     "metrics.csv",
     "adaptation.csv",
     "config.toml",
+    "identity.toml",
 ];
 
 /// Whether `name` (a file name in a run directory, or in its `checkpoints/`

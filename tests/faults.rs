@@ -747,3 +747,89 @@ fn a_full_disk_during_the_metrics_append_leaves_whole_rows_and_names_the_path() 
     assert!(ok, "{log}");
     assert_eq!(metric_iterations(&run), [1, 2, 3]);
 }
+
+/// Copies the folder `from` to `to`, files and subfolders.
+fn copy_folder(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_folder(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap();
+        }
+    }
+}
+
+/// Rewrites checkpoint `path` without its run identity, as rall wrote it
+/// before identities existed (checksums kept).
+fn drop_identity(path: &Path) {
+    let mut c = rall::learn::read_checkpoint(path).unwrap();
+    c.metadata.retain(|k, _| !k.starts_with("run_"));
+    rall::learn::save_checkpoint_with(path, &c.tensors, &c.blobs, &c.metadata).unwrap();
+}
+
+#[test]
+fn another_runs_checkpoint_is_refused_naming_both_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 2);
+    let (f, x) = (dir.path().join("f"), dir.path().join("x"));
+    for (run, seed) in [(&f, "2"), (&x, "1")] {
+        let (ok, _, log) = rall_output(&[
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+            "--seed",
+            seed,
+        ]);
+        assert!(ok, "{log}");
+    }
+    let id = |p: &Path| load_policy(p).unwrap().progress.identity.unwrap();
+    let (f_id, x_id) = (id(&f.join(LATEST)), id(&x.join(LATEST)));
+    assert_ne!(f_id.run_id, x_id.run_id);
+    assert_eq!((f_id.seed, x_id.seed), (2, 1));
+    // `checkpoint info` shows the identity
+    let (ok, _, info) = rall_output(&["checkpoint", "info", x.join(LATEST).to_str().unwrap()]);
+    assert!(ok && info.contains(&x_id.describe()), "{info}");
+
+    // F's checkpoint put in X's place is refused, naming both runs; X is untouched
+    let before = |r: &Path| {
+        ["config.toml", "metrics.csv", "identity.toml"]
+            .map(|n| std::fs::read_to_string(r.join(n)).unwrap())
+    };
+    let x_before = before(&x);
+    let x_latest = std::fs::read(x.join(LATEST)).unwrap();
+    std::fs::copy(f.join("checkpoints/model_000002.safetensors"), x.join(LATEST)).unwrap();
+    let (ok, _, log) = rall_output(&["train", "--resume", x.to_str().unwrap(), "--iterations", "3"]);
+    assert!(!ok, "another run's checkpoint was resumed: {log}");
+    assert!(
+        log.contains(&f_id.describe()) && log.contains(&x_id.describe()),
+        "the error names both runs: {log}"
+    );
+    assert_eq!(before(&x), x_before, "the refused resume wrote into X");
+
+    // a run folder copied elsewhere resumes as the same run
+    std::fs::write(x.join(LATEST), &x_latest).unwrap();
+    let y = dir.path().join("y");
+    copy_folder(&x, &y);
+    let (ok, _, log) = rall_output(&["train", "--resume", y.to_str().unwrap(), "--iterations", "3"]);
+    assert!(ok, "{log}");
+    assert_eq!(id(&y.join(LATEST)), x_id);
+
+    // a checkpoint written before identities (and a folder without identity.toml)
+    // resumes, and `checkpoint info` says the identity is not recorded
+    drop_identity(&x.join(LATEST));
+    let (ok, _, info) = rall_output(&["checkpoint", "info", x.join(LATEST).to_str().unwrap()]);
+    assert!(ok && info.contains("identity not recorded"), "{info}");
+    let (ok, _, log) = rall_output(&["train", "--resume", x.to_str().unwrap(), "--iterations", "3"]);
+    assert!(ok, "{log}");
+    let old = dir.path().join("old");
+    copy_folder(&f, &old);
+    drop_identity(&old.join(LATEST));
+    std::fs::remove_file(old.join("identity.toml")).unwrap();
+    let (ok, _, log) = rall_output(&["train", "--resume", old.to_str().unwrap(), "--iterations", "3"]);
+    assert!(ok, "{log}");
+    assert_eq!(load_policy(&old.join(LATEST)).unwrap().progress.iteration, 3);
+}

@@ -17,8 +17,9 @@ pub struct CheckpointArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum CheckpointCommand {
-    /// Print each file's iteration, env steps, method, size, whether its checksums
-    /// verify, and whether it resumes bit for bit, resumes inexactly or only acts.
+    /// Print each file's iteration, env steps, method, run identity (id, seed,
+    /// config hash), size, whether its checksums verify, and whether it resumes
+    /// bit for bit, resumes inexactly or only acts.
     Info {
         #[arg(required = true)]
         files: Vec<PathBuf>,
@@ -93,8 +94,12 @@ fn describe(path: &Path) -> Result<String> {
         label if label == critic => format!("{critic} critic"),
         label => format!("{critic} critic ({label})"),
     };
+    let identity = match &p.progress.identity {
+        Some(id) => id.describe(),
+        None => "run identity not recorded (older file)".into(),
+    };
     Ok(format!(
-        "{}: iteration {}, {:.1} M env steps, {method}, {:.1} MB, {}, {contents}",
+        "{}: iteration {}, {:.1} M env steps, {method}, {identity}, {:.1} MB, {}, {contents}",
         path.display(),
         p.progress.iteration,
         p.progress.total_env_steps as f64 / 1e6,
