@@ -169,7 +169,10 @@ mod tests {
         let full = Path::new("/dev/full");
         let mut f = std::fs::OpenOptions::new().append(true).open(full).unwrap();
         let e = format!("{:#}", append_whole(&mut f, full, b"1,2\n").unwrap_err());
-        assert!(e.contains("/dev/full") && e.contains("No space left"), "{e}");
+        assert!(
+            e.contains("/dev/full") && e.contains("No space left"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -161,7 +161,10 @@ fn strip_checksums(src: &Path, out: &Path) {
 fn info_calls_a_run_state_without_checksums_unverified() {
     let dir = tempfile_dir("stripped");
     let stripped = dir.join("stripped.safetensors");
-    strip_checksums(&Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE), &stripped);
+    strip_checksums(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE),
+        &stripped,
+    );
     let out = stdout(&rall(&["checkpoint", "info", stripped.to_str().unwrap()]));
     assert!(out.contains("unverified"), "{out}");
     assert!(!out.contains("bit for bit"), "{out}");

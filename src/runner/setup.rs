@@ -92,7 +92,13 @@ fn checked_identity(
     cfg: &TrainConfig,
 ) -> Result<RunIdentity> {
     let stored = RunIdentity::read(&dir.root)?;
-    resumed_identity(&dir.root, stored, loaded.progress.identity.as_ref(), path, cfg)
+    resumed_identity(
+        &dir.root,
+        stored,
+        loaded.progress.identity.as_ref(),
+        path,
+        cfg,
+    )
 }
 
 /// The identity of a run starting at iteration 0: the directory's own when a
