@@ -468,13 +468,24 @@ fn a_shared_run_dir_keeps_other_programs_temp_files() {
         std::fs::write(shared.join(name), "not rall's").unwrap();
     }
     std::fs::write(shared.join("latest.safetensors.tmp"), "a killed write").unwrap();
-    let (ok, _, log) = rall_output(&[
-        "train",
-        "--config",
-        cfg.to_str().unwrap(),
-        "--run-dir",
-        shared.to_str().unwrap(),
-    ]);
+    let train = |force: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            shared.to_str().unwrap(),
+        ];
+        args.extend(force);
+        rall_output(&args)
+    };
+    // a folder with files rall did not write takes --force
+    let (ok, _, log) = train(&[]);
+    assert!(
+        !ok && log.contains("notes.tmp") && log.contains("--force"),
+        "{log}"
+    );
+    let (ok, _, log) = train(&["--force"]);
     assert!(ok, "{log}");
     for name in [
         "notes.tmp",
@@ -733,7 +744,10 @@ fn a_full_disk_during_the_metrics_append_leaves_whole_rows_and_names_the_path() 
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "a failed append stops the run: {stderr}");
+    assert!(
+        !out.status.success(),
+        "a failed append stops the run: {stderr}"
+    );
     let metrics = run.join("metrics.csv");
     assert!(
         stderr.contains(&metrics.display().to_string()) && stderr.contains("No space left"),
@@ -801,8 +815,18 @@ fn another_runs_checkpoint_is_refused_naming_both_runs() {
     };
     let x_before = before(&x);
     let x_latest = std::fs::read(x.join(LATEST)).unwrap();
-    std::fs::copy(f.join("checkpoints/model_000002.safetensors"), x.join(LATEST)).unwrap();
-    let (ok, _, log) = rall_output(&["train", "--resume", x.to_str().unwrap(), "--iterations", "3"]);
+    std::fs::copy(
+        f.join("checkpoints/model_000002.safetensors"),
+        x.join(LATEST),
+    )
+    .unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        x.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
     assert!(!ok, "another run's checkpoint was resumed: {log}");
     assert!(
         log.contains(&f_id.describe()) && log.contains(&x_id.describe()),
@@ -814,7 +838,13 @@ fn another_runs_checkpoint_is_refused_naming_both_runs() {
     std::fs::write(x.join(LATEST), &x_latest).unwrap();
     let y = dir.path().join("y");
     copy_folder(&x, &y);
-    let (ok, _, log) = rall_output(&["train", "--resume", y.to_str().unwrap(), "--iterations", "3"]);
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        y.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
     assert!(ok, "{log}");
     assert_eq!(id(&y.join(LATEST)), x_id);
 
@@ -823,13 +853,66 @@ fn another_runs_checkpoint_is_refused_naming_both_runs() {
     drop_identity(&x.join(LATEST));
     let (ok, _, info) = rall_output(&["checkpoint", "info", x.join(LATEST).to_str().unwrap()]);
     assert!(ok && info.contains("identity not recorded"), "{info}");
-    let (ok, _, log) = rall_output(&["train", "--resume", x.to_str().unwrap(), "--iterations", "3"]);
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        x.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
     assert!(ok, "{log}");
     let old = dir.path().join("old");
     copy_folder(&f, &old);
     drop_identity(&old.join(LATEST));
     std::fs::remove_file(old.join("identity.toml")).unwrap();
-    let (ok, _, log) = rall_output(&["train", "--resume", old.to_str().unwrap(), "--iterations", "3"]);
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        old.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
     assert!(ok, "{log}");
-    assert_eq!(load_policy(&old.join(LATEST)).unwrap().progress.iteration, 3);
+    assert_eq!(
+        load_policy(&old.join(LATEST)).unwrap().progress.iteration,
+        3
+    );
+}
+
+#[test]
+fn a_system_directory_or_a_link_to_one_is_refused_as_run_dir() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 1);
+    let link = dir.path().join("runs");
+    std::os::unix::fs::symlink("/proc", &link).unwrap();
+    for run_dir in [link.clone(), link.join("new-run"), PathBuf::from("/proc")] {
+        for force in [false, true] {
+            let mut args = vec![
+                "train",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--run-dir",
+                run_dir.to_str().unwrap(),
+            ];
+            if force {
+                args.push("--force");
+            }
+            let (ok, code, log) = rall_output(&args);
+            assert!(!ok && code == Some(1), "{args:?}: {log}");
+            assert!(log.contains("system directory"), "{args:?}: {log}");
+        }
+    }
+    // someone else's folder: refused, naming a file of theirs
+    let theirs = dir.path().join("theirs");
+    std::fs::create_dir_all(&theirs).unwrap();
+    std::fs::write(theirs.join("passwd"), "not rall's").unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        theirs.to_str().unwrap(),
+    ]);
+    assert!(!ok && log.contains("passwd"), "{log}");
+    assert!(!theirs.join("config.toml").exists() && !theirs.join("train.lock").exists());
 }

@@ -10,6 +10,7 @@ use nix::sys::signal::{SigSet, Signal};
 
 use crate::config::{ActionStdReset, TrainConfig};
 use crate::learn::CriticKind;
+use crate::runner::run_dir::check_new_run_folder;
 use crate::runner::{
     restart_adaptation, train_in, IterationObserver, PhaseOneOnly, RunDir, World, LATEST,
 };
@@ -52,6 +53,10 @@ pub struct TrainArgs {
     /// Resume the run in this directory from its latest checkpoint.
     #[arg(long, conflicts_with = "run_dir")]
     pub resume: Option<PathBuf>,
+    /// Train into a run directory that holds files rall did not write (they are
+    /// left alone). A system directory is refused even so.
+    #[arg(long, conflicts_with = "resume")]
+    pub force: bool,
     /// RMA: discard the run's phase 2 (the adaptation module; its checkpoints are
     /// moved to <run>/discarded-adaptation/) and train it again on the frozen
     /// teacher from the end of phase 1. With a larger --iterations, the teacher
@@ -241,13 +246,16 @@ fn new_run_config(
     let run_dir = run_dir
         .cloned()
         .unwrap_or_else(|| default_run_dir(&config, &cfg));
-    let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
-    if taken && world.is_root() {
-        bail!(
-            "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
-            run_dir.display(),
-            run_dir.display()
-        );
+    if world.is_root() {
+        let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
+        if taken {
+            bail!(
+                "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
+                run_dir.display(),
+                run_dir.display()
+            );
+        }
+        check_new_run_folder(&run_dir, args.force)?;
     }
     Ok((cfg, run_dir))
 }
@@ -383,8 +391,7 @@ pub fn install_stop_handler() -> Result<Arc<AtomicBool>> {
         first: std::sync::OnceLock::new(),
     });
     let on_ctrlc = requests.clone();
-    ctrlc::set_handler(move || on_ctrlc.request())
-        .context("installing the interrupt handler")?;
+    ctrlc::set_handler(move || on_ctrlc.request()).context("installing the interrupt handler")?;
     block_forwarded_stop_signals()?;
     std::thread::Builder::new()
         .name("rall-stop-signals".into())

@@ -12,6 +12,145 @@ use crate::learn::Learner;
 /// Name of the rolling checkpoint in a run directory.
 pub const LATEST: &str = "latest.safetensors";
 
+/// What rall writes at the top of a run directory: its files, its folders
+/// (`checkpoints/`, RMA's `discarded-adaptation/`) and the final-policy choice
+/// of `rall experiment` (`selected.safetensors` and its CSVs). Temp files of
+/// these ([`crate::fsio::is_rall_temp`]) and of the lock are rall's too.
+pub const RUN_ENTRIES: [&str; 11] = [
+    LATEST,
+    "config.toml",
+    "identity.toml",
+    "metrics.csv",
+    "adaptation.csv",
+    "train.lock",
+    "checkpoints",
+    "discarded-adaptation",
+    "selected.safetensors",
+    "selection.csv",
+    "teacher-selection.csv",
+];
+
+/// Directories no run is written into, nor below: the system's own.
+const SYSTEM_TREES: [&str; 17] = [
+    "/bin",
+    "/boot",
+    "/dev",
+    "/etc",
+    "/lib",
+    "/lib32",
+    "/lib64",
+    "/libx32",
+    "/proc",
+    "/run",
+    "/sbin",
+    "/sys",
+    "/usr",
+    "/var/lib",
+    "/var/log",
+    "/var/cache",
+    "/var/spool",
+];
+
+/// Directories no run is written into (what is below them is fine).
+const SYSTEM_DIRS: [&str; 9] = [
+    "/", "/home", "/root", "/tmp", "/var", "/opt", "/mnt", "/media", "/srv",
+];
+
+/// Refuses a directory a new run must not be written into: a system
+/// directory (one of [`SYSTEM_DIRS`], or anything within [`SYSTEM_TREES`];
+/// symlinks resolved first), and, unless `force`, one that holds files rall
+/// did not write (an empty directory, or a run's, is fine).
+pub fn check_new_run_folder(path: &Path, force: bool) -> Result<()> {
+    let resolved = resolve_symlinks(path)?;
+    if is_system_dir(&resolved) {
+        anyhow::bail!(
+            "--run-dir {} is a system directory ({}): rall writes a run's config, metrics and checkpoints there; choose a folder of your own",
+            path.display(),
+            resolved.display()
+        );
+    }
+    if force || !resolved.exists() {
+        return Ok(());
+    }
+    anyhow::ensure!(
+        resolved.is_dir(),
+        "--run-dir {} is not a directory",
+        path.display()
+    );
+    let foreign = foreign_entries(&resolved)?;
+    if !foreign.is_empty() {
+        let shown: Vec<&str> = foreign.iter().take(3).map(String::as_str).collect();
+        anyhow::bail!(
+            "--run-dir {} holds files rall did not write ({}{}): a run goes into an empty folder or a run's own; choose another --run-dir, or pass --force to write beside them",
+            path.display(),
+            shown.join(", "),
+            if foreign.len() > 3 {
+                format!(" and {} more", foreign.len() - 3)
+            } else {
+                String::new()
+            }
+        );
+    }
+    Ok(())
+}
+
+/// `path` with every symlink resolved; for a path that does not exist yet, its
+/// nearest existing ancestor resolved and the rest appended.
+fn resolve_symlinks(path: &Path) -> Result<PathBuf> {
+    let mut rest = Vec::new();
+    let mut at = path;
+    loop {
+        let probe = if at.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            at
+        };
+        if let Ok(real) = std::fs::canonicalize(probe) {
+            return Ok(rest.iter().rev().fold(real, |p, c| p.join(c)));
+        }
+        match (at.file_name(), at.parent()) {
+            (Some(name), Some(parent)) => {
+                rest.push(name.to_owned());
+                at = parent;
+            }
+            _ => anyhow::bail!("--run-dir {}: no part of it exists", path.display()),
+        }
+    }
+}
+
+/// Whether `path` (absolute, resolved) is one of [`SYSTEM_DIRS`] or within
+/// one of [`SYSTEM_TREES`].
+fn is_system_dir(path: &Path) -> bool {
+    SYSTEM_DIRS.iter().any(|d| path == Path::new(d))
+        || SYSTEM_TREES.iter().any(|t| path.starts_with(t))
+}
+
+/// Names at the top of `dir` that rall does not write, sorted.
+fn foreign_entries(dir: &Path) -> Result<Vec<String>> {
+    let mut foreign = Vec::new();
+    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let name = e
+            .with_context(|| format!("reading {}", dir.display()))?
+            .file_name()
+            .to_string_lossy()
+            .into_owned();
+        if !is_rall_entry(&name) {
+            foreign.push(name);
+        }
+    }
+    foreign.sort();
+    Ok(foreign)
+}
+
+/// Whether a run directory's top-level `name` is one rall writes.
+fn is_rall_entry(name: &str) -> bool {
+    let lock_temp = name
+        .strip_prefix("train.lock.")
+        .and_then(|n| n.strip_suffix(crate::fsio::TMP_SUFFIX))
+        .is_some_and(|pid| !pid.is_empty() && pid.bytes().all(|c| c.is_ascii_digit()));
+    RUN_ENTRIES.contains(&name) || crate::fsio::is_rall_temp(name, false) || lock_temp
+}
+
 /// Where a run keeps its files.
 pub struct RunDir {
     pub root: PathBuf,
@@ -319,6 +458,47 @@ pub(super) fn save_both(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn system_and_foreign_folders_are_refused() {
+        for dir in [
+            "/",
+            "/etc",
+            "/etc/ssh",
+            "/usr/local/share",
+            "/proc/self",
+            "/home",
+        ] {
+            let e = format!(
+                "{:#}",
+                check_new_run_folder(Path::new(dir), true).unwrap_err()
+            );
+            assert!(e.contains("system directory"), "{dir}: {e}");
+        }
+        let tmp = tempfile::tempdir().unwrap();
+        // a symlink to a system directory is that directory
+        let link = tmp.path().join("link");
+        std::os::unix::fs::symlink("/etc", &link).unwrap();
+        let e = format!("{:#}", check_new_run_folder(&link, true).unwrap_err());
+        assert!(e.contains("system directory") && e.contains("/etc"), "{e}");
+        let e = format!(
+            "{:#}",
+            check_new_run_folder(&link.join("new/run"), true).unwrap_err()
+        );
+        assert!(e.contains("/etc/new/run"), "{e}");
+        // empty, new, or a run's own: fine; someone else's files: refused unless forced
+        let run = tmp.path().join("run");
+        check_new_run_folder(&run, false).unwrap();
+        std::fs::create_dir_all(run.join("checkpoints")).unwrap();
+        for f in ["config.toml", "metrics.csv.tmp", "train.lock.42.tmp"] {
+            std::fs::write(run.join(f), "").unwrap();
+        }
+        check_new_run_folder(&run, false).unwrap();
+        std::fs::write(run.join("notes.txt"), "mine").unwrap();
+        let e = format!("{:#}", check_new_run_folder(&run, false).unwrap_err());
+        assert!(e.contains("notes.txt") && e.contains("--force"), "{e}");
+        check_new_run_folder(&run, true).unwrap();
+    }
 
     #[test]
     fn one_trainer_per_run_directory_and_dead_holders_are_taken_over() {
