@@ -916,3 +916,82 @@ fn a_system_directory_or_a_link_to_one_is_refused_as_run_dir() {
     assert!(!ok && log.contains("passwd"), "{log}");
     assert!(!theirs.join("config.toml").exists() && !theirs.join("train.lock").exists());
 }
+
+#[test]
+fn settings_that_would_train_nothing_are_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg_path = tiny_config_file(dir.path(), 2);
+    let base = TrainConfig::from_toml_str(&std::fs::read_to_string(&cfg_path).unwrap())
+        .unwrap()
+        .to_toml();
+    let cases = [
+        // the weights would never change
+        (
+            "[learner.ppo]",
+            "learning_rate = 0.0",
+            "learner.ppo.learning_rate",
+        ),
+        // the adaptive rate could reach 0 and stay there
+        ("[learner.ppo]", "min_lr = 0.0", "learner.ppo.min_lr"),
+        ("[runner]", "iterations = 0", "runner.iterations"),
+        // an episode of 5e12 physics steps
+        (
+            "[env.control]",
+            "physics_dt_s = 1e-12",
+            "control.physics_dt_s",
+        ),
+        // heights rounded to 1e30 m: every tile flat
+        (
+            "[env.terrain]",
+            "vertical_scale_m = 1e30",
+            "terrain.vertical_scale_m",
+        ),
+        // an episode shorter than one policy step
+        ("[env.episode]", "length_s = 0.001", "episode.length_s"),
+    ];
+    for (i, (table, line, key)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("nothing{i}.toml"));
+        std::fs::write(&path, set_key(&base, table, line)).unwrap();
+        let run = dir.path().join(format!("run{i}"));
+        let (ok, code, log) = rall_output(&[
+            "train",
+            "--config",
+            path.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ]);
+        assert!(!ok && code == Some(1), "{line}: {code:?} {log}");
+        assert!(log.contains(key), "{line}: the error names {key}: {log}");
+        assert!(!run.exists(), "{line}: nothing is written");
+    }
+    // a discount of 0 is a legitimate (myopic) experiment: accepted
+    let myopic = set_key(&base, "[learner.ppo]", "gamma = 0.0");
+    TrainConfig::from_toml_str(&myopic).unwrap();
+
+    // --iterations 0, new or resumed, is refused; so is a resume with nothing left
+    let run = dir.path().join("run");
+    let cfg_s = cfg_path.to_str().unwrap();
+    let run_s = run.to_str().unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg_s,
+        "--run-dir",
+        run_s,
+        "--iterations",
+        "0",
+    ]);
+    assert!(!ok && log.contains("runner.iterations"), "{log}");
+    assert!(!run.join(LATEST).exists());
+    let (ok, _, log) = rall_output(&["train", "--config", cfg_s, "--run-dir", run_s]);
+    assert!(ok, "{log}");
+    for target in ["0", "1", "2"] {
+        let (ok, _, log) = rall_output(&["train", "--resume", run_s, "--iterations", target]);
+        assert!(!ok, "--iterations {target} on a run at 2: {log}");
+        assert!(
+            log.contains("runner.iterations") || log.contains("nothing to train"),
+            "--iterations {target}: {log}"
+        );
+    }
+    assert_eq!(metric_iterations(&run), [1, 2]);
+}

@@ -193,6 +193,7 @@ fn resumed_state(
 ) -> Result<(TrainConfig, Learner, Progress)> {
     let stored = keep_runner_settings(loaded.config, cfg, loaded.progress.iteration)
         .with_context(|| format!("resuming from {}", path.display()))?;
+    check_iterations_left(&stored, loaded.progress.iteration, path)?;
     if world.is_root() {
         println!(
             "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
@@ -208,6 +209,22 @@ fn resumed_state(
         );
     }
     Ok((stored, loaded.learner, loaded.progress))
+}
+
+/// Refuses a resume that would train nothing: a run (other than RMA's, whose
+/// phase 2 follows its phase-1 target) at or past its target.
+fn check_iterations_left(
+    stored: &TrainConfig,
+    iteration: usize,
+    path: &std::path::Path,
+) -> Result<()> {
+    let target = stored.runner.iterations;
+    anyhow::ensure!(
+        stored.learner.adaptation.is_some() || iteration < target,
+        "{} is at iteration {iteration} and the run's target is {target}: there is nothing to train; pass --iterations N with N above {iteration} to train on",
+        path.display()
+    );
+    Ok(())
 }
 
 /// A validated `cfg` with the networks and progress of its iteration 0.
