@@ -35,7 +35,9 @@ impl Distortion {
             Distortion::Cvar { eta } if !(eta > 0.0 && eta <= 1.0) => {
                 anyhow::bail!("CVaR eta must be in (0, 1], got {eta}")
             }
-            Distortion::Wang { lambda } if !(lambda.abs() <= MAX_WANG_LAMBDA) => {
+            Distortion::Wang { lambda }
+                if !(lambda.is_finite() && lambda.abs() <= MAX_WANG_LAMBDA) =>
+            {
                 anyhow::bail!(
                     "Wang lambda must be in [-{MAX_WANG_LAMBDA}, {MAX_WANG_LAMBDA}], got {lambda}: beyond, every distorted tau rounds to 0 or 1"
                 )
