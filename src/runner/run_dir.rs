@@ -144,11 +144,17 @@ fn foreign_entries(dir: &Path) -> Result<Vec<String>> {
 
 /// Whether a run directory's top-level `name` is one rall writes.
 fn is_rall_entry(name: &str) -> bool {
-    let lock_temp = name
-        .strip_prefix("train.lock.")
-        .and_then(|n| n.strip_suffix(crate::fsio::TMP_SUFFIX))
-        .is_some_and(|pid| !pid.is_empty() && pid.bytes().all(|c| c.is_ascii_digit()));
-    RUN_ENTRIES.contains(&name) || crate::fsio::is_rall_temp(name, false) || lock_temp
+    RUN_ENTRIES.contains(&name)
+        || crate::fsio::is_rall_temp(name, false)
+        || lock_temp_pid(name).is_some()
+}
+
+/// The pid in the name of a lock being taken (`train.lock.<pid>.tmp`).
+fn lock_temp_pid(name: &str) -> Option<u32> {
+    name.strip_prefix("train.lock.")?
+        .strip_suffix(crate::fsio::TMP_SUFFIX)?
+        .parse()
+        .ok()
 }
 
 /// Where a run keeps its files.
@@ -170,7 +176,8 @@ impl RunDir {
     }
 
     /// Removes the temp files a killed or failed write of rall left behind
-    /// (only its own names: a shared folder's other `*.tmp` files stay).
+    /// (only its own names: a shared folder's other `*.tmp` files stay), and
+    /// the lock files of trainers killed while taking the lock.
     pub(super) fn remove_temp_files(&self) {
         for (d, in_checkpoints) in [
             (self.root.clone(), false),
@@ -181,9 +188,10 @@ impl RunDir {
             };
             for e in entries.flatten() {
                 let name = e.file_name();
-                let ours = name
-                    .to_str()
-                    .is_some_and(|n| crate::fsio::is_rall_temp(n, in_checkpoints));
+                let ours = name.to_str().is_some_and(|n| {
+                    crate::fsio::is_rall_temp(n, in_checkpoints)
+                        || (!in_checkpoints && lock_temp_pid(n).is_some_and(|p| !process_alive(p)))
+                });
                 if ours && e.file_type().is_ok_and(|t| t.is_file()) {
                     let _ = std::fs::remove_file(e.path());
                 }
@@ -458,6 +466,24 @@ pub(super) fn save_both(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_dead_trainers_lock_in_the_making_is_removed_a_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let (dead, live) = (
+            "train.lock.4294967295.tmp".to_string(),
+            format!("train.lock.{}.tmp", std::process::id()),
+        );
+        for n in [&dead, &live] {
+            std::fs::write(dir.path().join(n), "").unwrap();
+        }
+        RunDir {
+            root: dir.path().to_path_buf(),
+        }
+        .remove_temp_files();
+        assert!(!dir.path().join(&dead).exists());
+        assert!(dir.path().join(&live).exists());
+    }
 
     #[test]
     fn system_and_foreign_folders_are_refused() {
