@@ -8,24 +8,28 @@ use serde::{Deserialize, Serialize};
 use crate::env::EnvConfig;
 use crate::learn::LearnerConfig;
 
-/// The training loop's own settings.
+/// The training loop's own settings. Each key's accepted range is in its
+/// comment; [`RunnerConfig::validate`] refuses anything outside it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RunnerConfig {
-    /// Parallel environments (robots).
+    /// Parallel environments (robots), 1..=1,048,576 ([`MAX_ENVS`]) and within
+    /// the machine's memory.
     pub num_envs: usize,
-    /// Policy steps per env per iteration (rsl_rl: 24).
+    /// Policy steps per env per iteration (rsl_rl: 24), 1..=100,000.
     pub steps_per_env: usize,
-    /// Iterations to train (a resumed run continues up to this number).
+    /// Iterations to train (a resumed run continues up to this number),
+    /// 1..=100,000,000: 0 would train nothing.
     pub iterations: usize,
-    /// Write a checkpoint every this many iterations.
+    /// Write a checkpoint every this many iterations, 1..=100,000,000.
     pub save_interval: usize,
-    /// Print a log line every this many iterations.
+    /// Print a log line every this many iterations, 1..=100,000,000.
     pub log_interval: usize,
-    /// Env worker threads (0 = all cores).
+    /// Env worker threads (0 = all cores), 0..=1024 ([`MAX_THREADS`]).
     pub threads: usize,
+    /// Seed of the networks' initialisation, the envs and the update; any u64.
     pub seed: u64,
-    /// Parent folder of run directories.
+    /// Parent folder of run directories; not empty.
     pub runs_dir: String,
     /// A last training stage at lower exploration noise (none by default).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -41,7 +45,10 @@ pub struct RunnerConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ActionStdReset {
+    /// Any iteration (a stage after the run's last iteration applies once the
+    /// run is resumed with a larger target).
     pub after_iteration: usize,
+    /// The new std in every action dimension, in [1e-9, 1e3].
     pub action_std: f32,
 }
 
@@ -79,7 +86,7 @@ impl RunnerConfig {
         let count = crate::learn::ppo::check_count;
         count("runner.num_envs", self.num_envs, 1, MAX_ENVS)?;
         count("runner.steps_per_env", self.steps_per_env, 1, 100_000)?;
-        count("runner.iterations", self.iterations, 0, 100_000_000)?;
+        count("runner.iterations", self.iterations, 1, 100_000_000)?;
         count("runner.save_interval", self.save_interval, 1, 100_000_000)?;
         count("runner.log_interval", self.log_interval, 1, 100_000_000)?;
         count("runner.threads", self.threads, 0, MAX_THREADS)?;

@@ -35,9 +35,10 @@
 //!   `heightfield`, `snapshot` (resume codec), `bench`.
 //! - `runner`: `train` (the `Trainer` loop), `setup` (fresh start or resume),
 //!   `run_dir` (files and lock), `job` (what crosses MPI ranks), `status` (bar and log
-//!   lines), `faults` (fault injection, divergence stop), `metrics`, `policy_file`,
-//!   `resume` (exact-resume state), `adapt` (RMA phase 2 in a run), `dist` (MPI world),
-//!   `scaling` (`rall bench scaling`: where an iteration's time goes, projected to more cores).
+//!   lines), `faults` (fault injection, divergence stop), `identity` (which run a
+//!   checkpoint belongs to), `metrics`, `policy_file`, `resume` (exact-resume state),
+//!   `adapt` (RMA phase 2 in a run), `dist` (MPI world), `scaling` (`rall bench
+//!   scaling`: where an iteration's time goes, projected to more cores).
 //! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,
 //!   `race`, `falls`, `severity`, `risk_calibration`, `report`, `cache` (rollout cache),
 //!   `jobs` (parallel rollouts), `policy` (checkpoint and ONNX policies), `rall_graph`,

@@ -130,3 +130,43 @@ fn cutting_the_same_actor_twice_leaves_the_file_alone() {
     assert_eq!(b.config.runner.seed, 2);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `src`'s tensors, byte tensors and metadata written to `out` without checksums.
+fn strip_checksums(src: &Path, out: &Path) {
+    use safetensors::tensor::{Dtype, TensorView};
+    let c = rall::learn::read_checkpoint(src).unwrap();
+    let floats: Vec<Vec<u8>> = c
+        .tensors
+        .iter()
+        .map(|t| t.data.iter().flat_map(|v| v.to_le_bytes()).collect())
+        .collect();
+    let mut views: Vec<(String, TensorView)> = c
+        .tensors
+        .iter()
+        .zip(&floats)
+        .map(|(t, b)| {
+            let v = TensorView::new(Dtype::F32, t.shape.clone(), b).unwrap();
+            (t.name.clone(), v)
+        })
+        .collect();
+    for (name, bytes) in &c.blobs {
+        let v = TensorView::new(Dtype::U8, vec![bytes.len()], bytes).unwrap();
+        views.push((name.clone(), v));
+    }
+    let buf = safetensors::serialize(views, Some(c.metadata.clone())).unwrap();
+    std::fs::write(out, buf).unwrap();
+}
+
+#[test]
+fn info_calls_a_run_state_without_checksums_unverified() {
+    let dir = tempfile_dir("stripped");
+    let stripped = dir.join("stripped.safetensors");
+    strip_checksums(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join(RUN_STATE),
+        &stripped,
+    );
+    let out = stdout(&rall(&["checkpoint", "info", stripped.to_str().unwrap()]));
+    assert!(out.contains("unverified"), "{out}");
+    assert!(!out.contains("bit for bit"), "{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

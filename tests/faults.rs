@@ -468,13 +468,24 @@ fn a_shared_run_dir_keeps_other_programs_temp_files() {
         std::fs::write(shared.join(name), "not rall's").unwrap();
     }
     std::fs::write(shared.join("latest.safetensors.tmp"), "a killed write").unwrap();
-    let (ok, _, log) = rall_output(&[
-        "train",
-        "--config",
-        cfg.to_str().unwrap(),
-        "--run-dir",
-        shared.to_str().unwrap(),
-    ]);
+    let train = |force: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            shared.to_str().unwrap(),
+        ];
+        args.extend(force);
+        rall_output(&args)
+    };
+    // a folder with files rall did not write takes --force
+    let (ok, _, log) = train(&[]);
+    assert!(
+        !ok && log.contains("notes.tmp") && log.contains("--force"),
+        "{log}"
+    );
+    let (ok, _, log) = train(&["--force"]);
     assert!(ok, "{log}");
     for name in [
         "notes.tmp",
@@ -656,4 +667,331 @@ fn a_checkpoint_from_before_checksums_resumes_with_one_note_each() {
     assert_eq!(log.matches("not bit-identically").count(), 1, "{log}");
     let p = load_policy(&latest).unwrap();
     assert!(p.exact && p.progress.iteration == 3);
+}
+
+/// Waits up to `limit` for `child` to exit; `None` if it is still running.
+fn wait_for(child: &mut Child, limit: Duration) -> Option<std::process::ExitStatus> {
+    let start = Instant::now();
+    while start.elapsed() < limit {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    None
+}
+
+/// Sends SIGTERM to `child` and waits for it.
+fn terminate(child: &mut Child) {
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    if wait_for(child, Duration::from_secs(60)).is_none() {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+}
+
+#[test]
+fn two_trainings_started_together_in_one_run_dir_do_not_both_train() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 100_000);
+    let run = dir.path().join("run");
+    let train = |delay_ms: &str| {
+        Command::new(env!("CARGO_BIN_EXE_rall"))
+            .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+            .arg(&run)
+            .args(["--save-interval", "100000"])
+            .env("RALL_FAULT_LOCK_DELAY_MS", delay_ms)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // the first stops for 4 s in the middle of taking the lock; the second
+    // starts meanwhile and takes it at once
+    let mut first = train("4000");
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut second = train("0");
+    let first_status = wait_for(&mut first, Duration::from_secs(60));
+    let second_running = second.try_wait().unwrap().is_none();
+    terminate(&mut second);
+    let Some(first_status) = first_status else {
+        terminate(&mut first);
+        panic!("both trainings ran in one run directory");
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut first.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(!first_status.success(), "{err}");
+    assert!(
+        err.contains(&format!("is being trained by process {}", second.id())),
+        "the first is refused naming the second: {err}"
+    );
+    assert!(second_running, "the second trained on");
+    assert!(!run.join("train.lock").exists(), "the lock is released");
+}
+
+#[test]
+fn a_full_disk_during_the_metrics_append_leaves_whole_rows_and_names_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 3);
+    let run = dir.path().join("run");
+    // appends to metrics.csv: the header, row 1, then row 2 meets a full disk
+    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+        .arg(&run)
+        .env("RALL_FAULT_DISK_FULL", "metrics.csv:3")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "a failed append stops the run: {stderr}"
+    );
+    let metrics = run.join("metrics.csv");
+    assert!(
+        stderr.contains(&metrics.display().to_string()) && stderr.contains("No space left"),
+        "the error names the file's full path and the cause: {stderr}"
+    );
+    let text = std::fs::read_to_string(&metrics).unwrap();
+    assert!(text.ends_with('\n'), "no half row: {text:?}");
+    assert_eq!(metric_iterations(&run), [1]);
+    // the run resumes from its last checkpoint with one row per iteration
+    let (ok, _, log) = rall_output(&["train", "--resume", run.to_str().unwrap()]);
+    assert!(ok, "{log}");
+    assert_eq!(metric_iterations(&run), [1, 2, 3]);
+}
+
+/// Copies the folder `from` to `to`, files and subfolders.
+fn copy_folder(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_folder(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap();
+        }
+    }
+}
+
+/// Rewrites checkpoint `path` without its run identity, as rall wrote it
+/// before identities existed (checksums kept).
+fn drop_identity(path: &Path) {
+    let mut c = rall::learn::read_checkpoint(path).unwrap();
+    c.metadata.retain(|k, _| !k.starts_with("run_"));
+    rall::learn::save_checkpoint_with(path, &c.tensors, &c.blobs, &c.metadata).unwrap();
+}
+
+#[test]
+fn another_runs_checkpoint_is_refused_naming_both_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 2);
+    let (f, x) = (dir.path().join("f"), dir.path().join("x"));
+    for (run, seed) in [(&f, "2"), (&x, "1")] {
+        let (ok, _, log) = rall_output(&[
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+            "--seed",
+            seed,
+        ]);
+        assert!(ok, "{log}");
+    }
+    let id = |p: &Path| load_policy(p).unwrap().progress.identity.unwrap();
+    let (f_id, x_id) = (id(&f.join(LATEST)), id(&x.join(LATEST)));
+    assert_ne!(f_id.run_id, x_id.run_id);
+    assert_eq!((f_id.seed, x_id.seed), (2, 1));
+    // `checkpoint info` shows the identity
+    let (ok, _, info) = rall_output(&["checkpoint", "info", x.join(LATEST).to_str().unwrap()]);
+    assert!(ok && info.contains(&x_id.describe()), "{info}");
+
+    // F's checkpoint put in X's place is refused, naming both runs; X is untouched
+    let before = |r: &Path| {
+        ["config.toml", "metrics.csv", "identity.toml"]
+            .map(|n| std::fs::read_to_string(r.join(n)).unwrap())
+    };
+    let x_before = before(&x);
+    let x_latest = std::fs::read(x.join(LATEST)).unwrap();
+    std::fs::copy(
+        f.join("checkpoints/model_000002.safetensors"),
+        x.join(LATEST),
+    )
+    .unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        x.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(!ok, "another run's checkpoint was resumed: {log}");
+    assert!(
+        log.contains(&f_id.describe()) && log.contains(&x_id.describe()),
+        "the error names both runs: {log}"
+    );
+    assert_eq!(before(&x), x_before, "the refused resume wrote into X");
+
+    // a run folder copied elsewhere resumes as the same run
+    std::fs::write(x.join(LATEST), &x_latest).unwrap();
+    let y = dir.path().join("y");
+    copy_folder(&x, &y);
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        y.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    assert_eq!(id(&y.join(LATEST)), x_id);
+
+    // a checkpoint written before identities (and a folder without identity.toml)
+    // resumes, and `checkpoint info` says the identity is not recorded
+    drop_identity(&x.join(LATEST));
+    let (ok, _, info) = rall_output(&["checkpoint", "info", x.join(LATEST).to_str().unwrap()]);
+    assert!(ok && info.contains("identity not recorded"), "{info}");
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        x.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    let old = dir.path().join("old");
+    copy_folder(&f, &old);
+    drop_identity(&old.join(LATEST));
+    std::fs::remove_file(old.join("identity.toml")).unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--resume",
+        old.to_str().unwrap(),
+        "--iterations",
+        "3",
+    ]);
+    assert!(ok, "{log}");
+    assert_eq!(
+        load_policy(&old.join(LATEST)).unwrap().progress.iteration,
+        3
+    );
+}
+
+#[test]
+fn a_system_directory_or_a_link_to_one_is_refused_as_run_dir() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path(), 1);
+    let link = dir.path().join("runs");
+    std::os::unix::fs::symlink("/proc", &link).unwrap();
+    for run_dir in [link.clone(), link.join("new-run"), PathBuf::from("/proc")] {
+        for force in [false, true] {
+            let mut args = vec![
+                "train",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--run-dir",
+                run_dir.to_str().unwrap(),
+            ];
+            if force {
+                args.push("--force");
+            }
+            let (ok, code, log) = rall_output(&args);
+            assert!(!ok && code == Some(1), "{args:?}: {log}");
+            assert!(log.contains("system directory"), "{args:?}: {log}");
+        }
+    }
+    // someone else's folder: refused, naming a file of theirs
+    let theirs = dir.path().join("theirs");
+    std::fs::create_dir_all(&theirs).unwrap();
+    std::fs::write(theirs.join("passwd"), "not rall's").unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--run-dir",
+        theirs.to_str().unwrap(),
+    ]);
+    assert!(!ok && log.contains("passwd"), "{log}");
+    assert!(!theirs.join("config.toml").exists() && !theirs.join("train.lock").exists());
+}
+
+#[test]
+fn settings_that_would_train_nothing_are_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg_path = tiny_config_file(dir.path(), 2);
+    let base = TrainConfig::from_toml_str(&std::fs::read_to_string(&cfg_path).unwrap())
+        .unwrap()
+        .to_toml();
+    let cases = [
+        // the weights would never change
+        (
+            "[learner.ppo]",
+            "learning_rate = 0.0",
+            "learner.ppo.learning_rate",
+        ),
+        // the adaptive rate could reach 0 and stay there
+        ("[learner.ppo]", "min_lr = 0.0", "learner.ppo.min_lr"),
+        ("[runner]", "iterations = 0", "runner.iterations"),
+        // an episode of 5e12 physics steps
+        (
+            "[env.control]",
+            "physics_dt_s = 1e-12",
+            "control.physics_dt_s",
+        ),
+        // heights rounded to 1e30 m: every tile flat
+        (
+            "[env.terrain]",
+            "vertical_scale_m = 1e30",
+            "terrain.vertical_scale_m",
+        ),
+        // an episode shorter than one policy step
+        ("[env.episode]", "length_s = 0.001", "episode.length_s"),
+    ];
+    for (i, (table, line, key)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("nothing{i}.toml"));
+        std::fs::write(&path, set_key(&base, table, line)).unwrap();
+        let run = dir.path().join(format!("run{i}"));
+        let (ok, code, log) = rall_output(&[
+            "train",
+            "--config",
+            path.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ]);
+        assert!(!ok && code == Some(1), "{line}: {code:?} {log}");
+        assert!(log.contains(key), "{line}: the error names {key}: {log}");
+        assert!(!run.exists(), "{line}: nothing is written");
+    }
+    // a discount of 0 is a legitimate (myopic) experiment: accepted
+    let myopic = set_key(&base, "[learner.ppo]", "gamma = 0.0");
+    TrainConfig::from_toml_str(&myopic).unwrap();
+
+    // --iterations 0, new or resumed, is refused; so is a resume with nothing left
+    let run = dir.path().join("run");
+    let cfg_s = cfg_path.to_str().unwrap();
+    let run_s = run.to_str().unwrap();
+    let (ok, _, log) = rall_output(&[
+        "train",
+        "--config",
+        cfg_s,
+        "--run-dir",
+        run_s,
+        "--iterations",
+        "0",
+    ]);
+    assert!(!ok && log.contains("runner.iterations"), "{log}");
+    assert!(!run.join(LATEST).exists());
+    let (ok, _, log) = rall_output(&["train", "--config", cfg_s, "--run-dir", run_s]);
+    assert!(ok, "{log}");
+    for target in ["0", "1", "2"] {
+        let (ok, _, log) = rall_output(&["train", "--resume", run_s, "--iterations", target]);
+        assert!(!ok, "--iterations {target} on a run at 2: {log}");
+        assert!(
+            log.contains("runner.iterations") || log.contains("nothing to train"),
+            "--iterations {target}: {log}"
+        );
+    }
+    assert_eq!(metric_iterations(&run), [1, 2]);
 }

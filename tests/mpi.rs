@@ -264,3 +264,81 @@ fn a_rank_that_dies_ends_the_job_and_the_run_resumes() {
     let its: Vec<usize> = rows.iter().map(|r| r[0].parse().unwrap()).collect();
     assert_eq!(its, (1..=done + 2).collect::<Vec<_>>());
 }
+
+/// Iterations of the complete rows of `run`'s metrics.csv (none before it exists).
+fn finished_iterations(run: &Path) -> Vec<usize> {
+    let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap_or_default();
+    let complete = text.rsplit_once('\n').map_or("", |(c, _)| c);
+    complete
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.split(',').next()?.parse().ok())
+        .collect()
+}
+
+#[test]
+fn sigusr1_to_mpirun_writes_a_checkpoint_and_the_job_exits_0() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config_file(dir.path());
+    let run_dir = dir.path().join("run");
+    let run_s = run_dir.to_str().unwrap();
+    let mut job = mpirun(
+        &[
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--run-dir",
+            run_s,
+            "--iterations",
+            "100000",
+            "--save-interval",
+            "100000",
+        ],
+        &[],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    let t0 = Instant::now();
+    while finished_iterations(&run_dir).len() < 2 {
+        assert!(t0.elapsed() < Duration::from_secs(120), "no iterations");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // what a scheduler asked to signal the job step sends (Slurm's --signal=USR1@T):
+    // mpirun forwards it to every rank
+    Command::new("kill")
+        .args(["-USR1", &job.id().to_string()])
+        .status()
+        .unwrap();
+    let t1 = Instant::now();
+    let status = loop {
+        if let Some(s) = job.try_wait().unwrap() {
+            break s;
+        }
+        if t1.elapsed() > Duration::from_secs(60) {
+            let _ = job.kill();
+            panic!("the job did not stop within 60 s of SIGUSR1");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut job.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(status.success(), "exit {status:?}: {err}");
+    // the checkpoint holds the last iteration logged, and the run resumes from it
+    let done = load_policy(&run_dir.join(LATEST))
+        .unwrap()
+        .progress
+        .iteration;
+    assert_eq!(finished_iterations(&run_dir).last(), Some(&done));
+    let target = (done + 1).to_string();
+    let again = run(mpirun(
+        &["train", "--resume", run_s, "--iterations", &target],
+        &[],
+    ));
+    assert!(again.status.success(), "{}", text(&again));
+    assert_eq!(
+        finished_iterations(&run_dir),
+        (1..=done + 1).collect::<Vec<_>>()
+    );
+}

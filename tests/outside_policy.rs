@@ -152,11 +152,29 @@ fn a_graph_rall_does_not_write_runs_through_tract() {
     elu.attribute[0].f = 0.5;
     let other = dir.path().join("other.onnx");
     std::fs::write(&other, encode(&model)).unwrap();
+    // the export's reference pairs are its own network's: this one is refused
     std::fs::copy(sidecar_path(&onnx), sidecar_path(&other)).unwrap();
+    let e = format!("{:#}", OnnxPolicy::load(&other).err().expect("refused"));
+    assert!(
+        e.contains("other.onnx") && e.contains("reference observation"),
+        "{e}"
+    );
+    // without them, the sidecar describes the graph and tract runs it
+    let mut side = read_json(&sidecar_path(&onnx));
+    side.as_object_mut().unwrap().remove("reference");
+    write_json(&sidecar_path(&other), &side);
     let p = OnnxPolicy::load(&other).unwrap();
     assert!(!p.runs_on_rall_forward());
     let obs = vec![0.1f32; OBS_DIM];
     assert!(max_action_diff(&ckpt.policy, &p, &obs) > 0.0);
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn write_json(path: &Path, v: &serde_json::Value) {
+    std::fs::write(path, serde_json::to_string(v).unwrap()).unwrap();
 }
 
 /// Writes the export's sidecar with `edit` applied; returns the load error.
@@ -249,10 +267,157 @@ fn a_sidecar_in_legged_gym_joint_order_is_followed() {
         .collect();
     side["joints"]["names"] = names.into();
     side["joints"]["default_angles_rad_in_order"] = angles.into();
+    // the export's trace and reference pairs are rall's network's, in rall's
+    // joint order: a legged_gym sidecar carries neither
+    let sections = side.as_object_mut().unwrap();
+    sections.remove("trace");
+    sections.remove("reference");
     let p = rall::eval::sidecar::sidecar_policy(&side).expect("a permutation rall can follow");
     assert_eq!(p.joint_order, sdk_of);
     // joint angles (offset 12 of rall's row) are gathered in the network's order
     let want: Vec<usize> = sdk_of.iter().map(|&j| 12 + j).collect();
     assert_eq!(&p.input_columns[12..24], &want[..]);
     assert_eq!(&p.input_columns[..12], &(0..12).collect::<Vec<_>>()[..]);
+}
+
+#[test]
+fn a_sidecar_is_read_strictly_naming_the_key_and_the_nearest_valid_one() {
+    // a misspelt key would silently drop that field's noise
+    let e = load_error_after(|s| {
+        let f = s["observation"]["fields"][0].as_object_mut().unwrap();
+        let noise = f.remove("training_noise_std_physical_units").unwrap();
+        f.insert("training_noise_std".into(), noise);
+    });
+    assert!(
+        e.contains("observation.fields[0].training_noise_std`")
+            && e.contains("observation.fields[0].training_noise_std_physical_units"),
+        "{e}"
+    );
+    // a misspelt section would only have said "defaults used"
+    let e = load_error_after(|s| {
+        let m = s.as_object_mut().unwrap();
+        let envelope = m.remove("training_envelope").unwrap();
+        m.insert("training_envelop".into(), envelope);
+    });
+    assert!(
+        e.contains("`training_envelop`") && e.contains("`training_envelope`"),
+        "{e}"
+    );
+    let e = load_error_after(|s| s["pd"]["kp"] = 50.0.into());
+    assert!(
+        e.contains("`pd.kp`") && e.contains("`pd.kp_nm_per_rad`"),
+        "{e}"
+    );
+    // a format this rall does not read
+    let e = load_error_after(|s| s["format_version"] = 3.into());
+    assert!(e.contains("format_version") && e.contains('3'), "{e}");
+    let e = load_error_after(|s| {
+        s.as_object_mut().unwrap().remove("format_version");
+    });
+    assert!(e.contains("format_version"), "{e}");
+}
+
+/// The export's sidecar with observation fields `a` and `b` swapped (offsets
+/// renumbered so the list is valid): a layout rall can follow, but not the
+/// network's.
+fn swap_fields(s: &mut serde_json::Value, a: usize, b: usize) {
+    let fields = s["observation"]["fields"].as_array_mut().unwrap();
+    fields.swap(a, b);
+    let mut offset = 0;
+    for f in fields.iter_mut() {
+        f["offset"] = offset.into();
+        offset += f["length"].as_u64().unwrap();
+    }
+}
+
+#[test]
+fn fields_listed_in_another_order_than_the_network_reads_are_refused() {
+    // base_lin_vel_body <-> base_ang_vel_body; joint_pos <-> joint_vel; gravity <-> command
+    for (a, b) in [(0, 1), (4, 5), (2, 3), (5, 6)] {
+        let e = load_error_after(|s| swap_fields(s, a, b));
+        assert!(
+            e.contains("not listed in the order the network reads them"),
+            "fields {a} and {b} swapped: {e}"
+        );
+    }
+    // reference pairs alone (no trace) catch a swap that moves gravity
+    let e = load_error_after(|s| {
+        s.as_object_mut().unwrap().remove("trace");
+        swap_fields(s, 1, 2);
+    });
+    assert!(
+        e.contains("reference.observations") && e.contains("gravity_body"),
+        "{e}"
+    );
+    // and a reference action the network does not return
+    let e = load_error_after(|s| {
+        let a = s["reference"]["actions"][3][5].as_f64().unwrap();
+        s["reference"]["actions"][3][5] = (a + 0.01).into();
+    });
+    assert!(
+        e.contains("reference observation 3") && e.contains("action 5"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_graph_with_a_fixed_batch_of_one_runs_robot_by_robot() {
+    use rall::export::onnx::{Dimension, DimensionValue};
+    let dir = tempfile::tempdir().unwrap();
+    let (_, _, onnx) = checkpoint_and_export(dir.path());
+    // what torch.onnx.export writes without dynamic_axes: batch 1 in and out;
+    // ELU's alpha changed so that tract, not rall's forward, runs the graph
+    let fixed = |batch: i64| {
+        let mut model = ModelProto::decode(std::fs::read(&onnx).unwrap().as_slice()).unwrap();
+        let graph = model.graph.as_mut().unwrap();
+        for io in graph.input.iter_mut().chain(graph.output.iter_mut()) {
+            let t = io.r#type.as_mut().unwrap().tensor_type.as_mut().unwrap();
+            t.shape.as_mut().unwrap().dim[0] = Dimension {
+                value: Some(DimensionValue::DimValue(batch)),
+            };
+        }
+        let elu = graph.node.iter_mut().find(|n| n.op_type == "Elu").unwrap();
+        elu.attribute[0].f = 0.5;
+        let path = dir.path().join(format!("batch{batch}.onnx"));
+        std::fs::write(&path, encode(&model)).unwrap();
+        let mut side = read_json(&sidecar_path(&onnx));
+        side.as_object_mut().unwrap().remove("reference");
+        write_json(&sidecar_path(&path), &side);
+        path
+    };
+    let one = OnnxPolicy::load(&fixed(1)).expect("a batch of 1 loads");
+    assert!(!one.runs_on_rall_forward());
+    let obs: Vec<f32> = (0..4 * OBS_DIM).map(|i| (i % 7) as f32 * 0.05).collect();
+    let all = one
+        .actions(&obs)
+        .expect("four robots through a graph of batch 1");
+    for (r, row) in obs.chunks_exact(OBS_DIM).enumerate() {
+        let alone = one.actions(row).unwrap();
+        assert_eq!(&all[r * 12..(r + 1) * 12], &alone[..], "robot {r}");
+    }
+    // another fixed batch is refused at load, naming the file and the cause
+    let e = format!(
+        "{:#}",
+        OnnxPolicy::load(&fixed(2)).err().expect("batch 2 refused")
+    );
+    assert!(
+        e.contains("batch2.onnx") && e.contains("fixed batch of 2"),
+        "{e}"
+    );
+}
+
+#[test]
+fn the_hand_written_sidecar_of_the_docs_is_read() {
+    let doc = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/outside-policies.md"),
+    )
+    .unwrap();
+    let json = doc
+        .split("```json\n")
+        .nth(1)
+        .and_then(|rest| rest.split("\n```").next())
+        .expect("docs/outside-policies.md has a JSON sidecar");
+    let side: serde_json::Value = serde_json::from_str(json).unwrap();
+    let p = rall::eval::sidecar::sidecar_policy(&side).unwrap_or_else(|e| panic!("{e:#}"));
+    assert!(p.defaulted.is_empty() && p.reference.is_none());
 }

@@ -429,6 +429,10 @@ fn validate_names_the_offending_key() {
         (|c| c.tile_length_m = 8.05, "terrain.tile_length_m"),
         (|c| c.horizontal_scale_m = 0.0, "terrain.horizontal_scale_m"),
         (|c| c.vertical_scale_m = -0.005, "terrain.vertical_scale_m"),
+        // a quantum that rounds every feature away: the terrain would be flat
+        (|c| c.vertical_scale_m = 1e30, "terrain.vertical_scale_m"),
+        (|c| c.vertical_scale_m = 0.03, "terrain.vertical_scale_m"),
+        (|c| c.tile_length_m = 1e30, "terrain.tile_length_m"),
         (|c| c.border_size_m = -1.0, "terrain.border_size_m"),
         (|c| c.platform_size_m = 9.0, "terrain.platform_size_m"),
         (|c| c.num_levels = 0, "terrain.num_levels"),

@@ -17,8 +17,9 @@ pub struct CheckpointArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum CheckpointCommand {
-    /// Print each file's iteration, env steps, method, size, whether its checksums
-    /// verify, and whether it resumes bit for bit, resumes inexactly or only acts.
+    /// Print each file's iteration, env steps, method, run identity (id, seed,
+    /// config hash), size, whether its checksums verify, and whether it resumes
+    /// bit for bit, resumes inexactly or only acts.
     Info {
         #[arg(required = true)]
         files: Vec<PathBuf>,
@@ -79,10 +80,13 @@ fn describe(path: &Path) -> Result<String> {
     let verified = read_checkpoint(path)?.verified;
     let p = load_policy(path)?;
     let bytes = std::fs::metadata(path)?.len();
-    let contents = match (p.actor_only, p.exact) {
-        (true, _) => "actor only: evaluates, never resumes",
-        (false, true) => "full: resumes bit for bit",
-        (false, false) => "full: resumes, not bit for bit (no runner state)",
+    let contents = match (p.actor_only, p.exact, verified) {
+        (true, _, _) => "actor only: evaluates, never resumes",
+        (false, true, true) => "full: resumes bit for bit",
+        (false, true, false) => {
+            "full: resumes, unverified (without checksums nothing shows the state is intact)"
+        }
+        (false, false, _) => "full: resumes, not bit for bit (no runner state)",
     };
     let learner = &p.config.learner;
     let critic = format!("{:?}", learner.critic).to_lowercase();
@@ -90,8 +94,12 @@ fn describe(path: &Path) -> Result<String> {
         label if label == critic => format!("{critic} critic"),
         label => format!("{critic} critic ({label})"),
     };
+    let identity = match &p.progress.identity {
+        Some(id) => id.describe(),
+        None => "run identity not recorded (older file)".into(),
+    };
     Ok(format!(
-        "{}: iteration {}, {:.1} M env steps, {method}, {:.1} MB, {}, {contents}",
+        "{}: iteration {}, {:.1} M env steps, {method}, {identity}, {:.1} MB, {}, {contents}",
         path.display(),
         p.progress.iteration,
         p.progress.total_env_steps as f64 / 1e6,
@@ -99,7 +107,7 @@ fn describe(path: &Path) -> Result<String> {
         if verified {
             "checksums verified"
         } else {
-            "no checksums (older file)"
+            "no checksums: unverified"
         },
     ))
 }

@@ -6,9 +6,11 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use nix::sys::signal::{SigSet, Signal};
 
 use crate::config::{ActionStdReset, TrainConfig};
 use crate::learn::CriticKind;
+use crate::runner::run_dir::check_new_run_folder;
 use crate::runner::{
     restart_adaptation, train_in, IterationObserver, PhaseOneOnly, RunDir, World, LATEST,
 };
@@ -51,6 +53,10 @@ pub struct TrainArgs {
     /// Resume the run in this directory from its latest checkpoint.
     #[arg(long, conflicts_with = "run_dir")]
     pub resume: Option<PathBuf>,
+    /// Train into a run directory that holds files rall did not write (they are
+    /// left alone). A system directory is refused even so.
+    #[arg(long, conflicts_with = "resume")]
+    pub force: bool,
     /// RMA: discard the run's phase 2 (the adaptation module; its checkpoints are
     /// moved to <run>/discarded-adaptation/) and train it again on the frozen
     /// teacher from the end of phase 1. With a larger --iterations, the teacher
@@ -88,6 +94,8 @@ fn parse_critic(s: &str) -> Result<CriticKind, String> {
 /// `rall train`, alone or as one rank under `mpirun`/`srun` (an error on any
 /// rank ends the whole job: the other ranks would wait for it forever).
 pub fn run(args: &TrainArgs) -> Result<()> {
+    // before MPI starts its threads, so that they leave SIGUSR1/2 to the waiter
+    block_forwarded_stop_signals()?;
     let world = World::from_env()?;
     match run_in(&world, args) {
         Err(e) if world.size() > 1 => {
@@ -238,13 +246,16 @@ fn new_run_config(
     let run_dir = run_dir
         .cloned()
         .unwrap_or_else(|| default_run_dir(&config, &cfg));
-    let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
-    if taken && world.is_root() {
-        bail!(
-            "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
-            run_dir.display(),
-            run_dir.display()
-        );
+    if world.is_root() {
+        let taken = run_dir.join(LATEST).exists() || run_dir.join("metrics.csv").exists();
+        if taken {
+            bail!(
+                "{} already holds a run; pass --resume {} to continue it or choose another --run-dir",
+                run_dir.display(),
+                run_dir.display()
+            );
+        }
+        check_new_run_folder(&run_dir, args.force)?;
     }
     Ok((cfg, run_dir))
 }
@@ -319,30 +330,77 @@ fn default_run_dir(config: &std::path::Path, cfg: &TrainConfig) -> PathBuf {
     ))
 }
 
-/// A flag set by SIGINT, SIGTERM (what schedulers send) or SIGHUP: the run
-/// finishes its iteration and writes a checkpoint. A second signal after more
-/// than a second exits at once.
+/// Signals that stop a run as SIGTERM does and that `mpirun` forwards to every
+/// rank without aborting the job. Open MPI's `mpirun` turns a SIGTERM, SIGINT
+/// or SIGHUP of its own into exit status 1 whatever the ranks do, and kills
+/// them a second later (`odls_base_sigkill_timeout`); SIGUSR1 and SIGUSR2 it
+/// passes on, and exits with the ranks' status.
+const FORWARDED_STOP_SIGNALS: [Signal; 2] = [Signal::SIGUSR1, Signal::SIGUSR2];
+
+fn forwarded_stop_signals() -> SigSet {
+    let mut set = SigSet::empty();
+    for s in FORWARDED_STOP_SIGNALS {
+        set.add(s);
+    }
+    set
+}
+
+/// Blocks SIGUSR1 and SIGUSR2 in this thread and in every thread started from
+/// it afterwards, so that only the waiter of [`install_stop_handler`] takes
+/// them. Call it before anything starts threads (MPI's initialisation does).
+pub fn block_forwarded_stop_signals() -> Result<()> {
+    forwarded_stop_signals()
+        .thread_block()
+        .context("blocking SIGUSR1 and SIGUSR2 for the stop handler")
+}
+
+/// One stop request: the first asks the run to finish its iteration and write
+/// a checkpoint; another more than a second later exits at once.
+struct StopRequests {
+    stop: Arc<AtomicBool>,
+    first: std::sync::OnceLock<std::time::Instant>,
+}
+
+impl StopRequests {
+    fn request(&self) {
+        let t0 = *self.first.get_or_init(std::time::Instant::now);
+        // A second signal within a second is the same request delivered twice
+        // (GNU timeout signals the child and then its process group; mpirun
+        // forwards a SIGUSR1 the scheduler also sent to each rank).
+        if self.stop.swap(true, Ordering::SeqCst) {
+            if t0.elapsed() >= std::time::Duration::from_secs(1) {
+                eprintln!("second interrupt: exiting without a checkpoint");
+                std::process::exit(130);
+            }
+            return;
+        }
+        eprintln!(
+            "interrupt (SIGINT/SIGTERM/SIGHUP/SIGUSR1/SIGUSR2): finishing this iteration and writing a checkpoint (interrupt again to abort)"
+        );
+    }
+}
+
+/// A flag set by SIGINT, SIGTERM (what schedulers send), SIGHUP, SIGUSR1 or
+/// SIGUSR2 (what to send under `mpirun`, see [`FORWARDED_STOP_SIGNALS`]): the
+/// run finishes its iteration and writes a checkpoint. A second signal after
+/// more than a second exits at once.
 pub fn install_stop_handler() -> Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        let first = std::sync::OnceLock::new();
-        ctrlc::set_handler(move || {
-            let t0 = *first.get_or_init(std::time::Instant::now);
-            // A second signal within a second is the same request delivered twice
-            // (GNU timeout signals the child and then its process group).
-            if stop.swap(true, Ordering::SeqCst) {
-                if t0.elapsed() >= std::time::Duration::from_secs(1) {
-                    eprintln!("second interrupt: exiting without a checkpoint");
-                    std::process::exit(130);
-                }
-                return;
+    let requests = Arc::new(StopRequests {
+        stop: stop.clone(),
+        first: std::sync::OnceLock::new(),
+    });
+    let on_ctrlc = requests.clone();
+    ctrlc::set_handler(move || on_ctrlc.request()).context("installing the interrupt handler")?;
+    block_forwarded_stop_signals()?;
+    std::thread::Builder::new()
+        .name("rall-stop-signals".into())
+        .spawn(move || {
+            let set = forwarded_stop_signals();
+            while set.wait().is_ok() {
+                requests.request();
             }
-            eprintln!(
-                "interrupt (SIGINT/SIGTERM/SIGHUP): finishing this iteration and writing a checkpoint (interrupt again to abort)"
-            );
         })
-        .context("installing the interrupt handler")?;
-    }
+        .context("starting the SIGUSR1/SIGUSR2 waiter")?;
     Ok(stop)
 }

@@ -1,9 +1,13 @@
 //! Task configuration as data: observation, reward, risk, commands, episodes,
 //! randomisation. Defaults are the RALL paper's (tables I-III) and legged_gym's.
+//! Every numeric key says its accepted range; [`EnvConfig::validate`] refuses
+//! anything outside it, naming the key.
 
 use serde::{Deserialize, Serialize};
 
-/// One scalar per observation group (legged_gym's grouping).
+/// One scalar per observation group (legged_gym's grouping). As scales
+/// (`observation.scales`) each is in [0, 1e4] (0 blanks the group); as noise
+/// stds (`observation.noise_std`) each is in [0, 1e4].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ObsGroups {
@@ -20,19 +24,19 @@ pub struct ObsGroups {
 pub struct ObservationConfig {
     /// Multipliers applied to each group (commands use `command_scale`, actions 1).
     pub scales: ObsGroups,
-    /// Scale of (vx, vy, yaw rate) in the command slot.
+    /// Scale of (vx, vy, yaw rate) in the command slot, each in [0, 1e4].
     pub command_scale: [f64; 3],
     /// Gaussian noise std per group, in physical units (m/s, rad/s, -, rad, rad/s);
     /// added after scaling as std * scale. Commands and actions get none.
     pub noise_std: ObsGroups,
-    /// Global multiplier of all noise (0 disables it).
+    /// Global multiplier of all noise (0 disables it), in [0, 1e4].
     pub noise_level: f64,
-    /// Observations are clipped to +-clip after scaling.
+    /// Observations are clipped to +-clip after scaling, clip in (0, 1e6].
     pub clip: f64,
     /// The groups the env writes into each observation row, in order:
     /// "policy", "privileged", "extrinsics", "history" (`ObsGroup`).
     pub groups: Vec<super::observation::ObsGroup>,
-    /// Policy observations kept in the `history` group (RMA: 50).
+    /// Policy observations kept in the `history` group (RMA: 50), 1..=1000.
     pub history_steps: usize,
 }
 
@@ -63,7 +67,8 @@ impl Default for ObservationConfig {
 }
 
 /// Weights of the task reward terms (paper table I); each term is multiplied by
-/// its weight and by the policy dt.
+/// its weight and by the policy dt. Every weight is in [-1e6, 1e6] (0 turns a
+/// term off).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RewardConfig {
@@ -78,9 +83,9 @@ pub struct RewardConfig {
     pub action_rate: f64,
     pub torque_rate: f64,
     pub feet_air_time: f64,
-    /// sigma of exp(-err^2 / sigma) ((m/s)^2 and (rad/s)^2).
+    /// sigma of exp(-err^2 / sigma) ((m/s)^2 and (rad/s)^2), in [1e-9, 1e6].
     pub tracking_sigma: f64,
-    /// Air time (s) that pays zero in the feet-air-time term.
+    /// Air time (s) that pays zero in the feet-air-time term, in [0, 1e3].
     pub feet_air_time_target_s: f64,
     /// Clip the summed task reward at 0 from below (legged_gym); risk penalties
     /// are applied after the clip so they are never hidden by it.
@@ -131,11 +136,14 @@ impl Default for RewardConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RiskTerm {
+    /// In the term's unit (below), in [0, 1e9].
     pub threshold: f64,
+    /// In [0, 1e6] (it is subtracted; 0 turns the penalty off).
     pub weight: f64,
     /// Joint terms only: one threshold per joint (SDK order) instead of `threshold`
     /// for the largest joint; the term is crossed when any joint passes its own
-    /// (`rall calibrate-risk` sets them from a walking policy's gait).
+    /// (`rall calibrate-risk` sets them from a walking policy's gait). Each in
+    /// (0, 1e9].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub per_joint: Option<[f64; crate::robot::NUM_JOINTS]>,
 }
@@ -144,7 +152,7 @@ pub struct RiskTerm {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RiskConfig {
-    /// Bernoulli probability that an exceeded threshold is penalised.
+    /// Bernoulli probability that an exceeded threshold is penalised, in [0, 1].
     pub probability: f64,
     /// |pitch| (rad).
     pub base_pitch: RiskTerm,
@@ -205,11 +213,15 @@ impl RiskConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CommandConfig {
+    /// Forward command range [lo, hi] (m/s), lo <= hi, both within +-100.
     pub vx_mps: [f64; 2],
+    /// Sideways command range [lo, hi] (m/s), lo <= hi, both within +-100.
     pub vy_mps: [f64; 2],
+    /// Yaw-rate command range [lo, hi] (rad/s), lo <= hi, both within +-100.
     pub yaw_rate_rad_s: [f64; 2],
+    /// Seconds between command draws, in [1e-6, 1e6].
     pub resample_interval_s: f64,
-    /// Planar commands with norm below this are zeroed (m/s).
+    /// Planar commands with norm below this are zeroed (m/s), in [0, 1e3].
     pub zero_below_mps: f64,
 }
 
@@ -229,8 +241,9 @@ impl Default for CommandConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EpisodeConfig {
+    /// Episode length (s), in [1e-6, 1e6] and at least one policy step.
     pub length_s: f64,
-    /// Terminate when roll or pitch exceeds this (rad).
+    /// Terminate when roll or pitch exceeds this (rad), in [1e-6, 1e3].
     pub max_tilt_rad: f64,
     /// Terminate when the trunk touches the ground.
     pub terminate_on_trunk_contact: bool,
@@ -254,13 +267,15 @@ impl Default for EpisodeConfig {
 #[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
 pub enum PushConfig {
     None,
-    /// Add U[-max, max] m/s to the base x and y velocity every `interval_s` (paper table III).
+    /// Add U[-max, max] m/s to the base x and y velocity every `interval_s` (paper table III);
+    /// `interval_s` in (0, 1e6], `max_mps` in [0, 100].
     VelocityKick {
         interval_s: f64,
         max_mps: f64,
     },
     /// Apply `force_n` on the trunk along a random +-x or +-y direction every
-    /// `every_steps` policy steps, held for `hold_steps` (paper's evaluation pushes).
+    /// `every_steps` policy steps, held for `hold_steps` (paper's evaluation pushes);
+    /// `force_n` in [0, 1e5], `every_steps` 1..=1,000,000, `hold_steps` 0..=`every_steps`.
     Force {
         force_n: f64,
         every_steps: usize,
@@ -268,21 +283,23 @@ pub enum PushConfig {
     },
 }
 
-/// Domain randomisation, sampled per episode (paper table III).
+/// Domain randomisation, sampled per episode (paper table III). Every range
+/// is `[lo, hi]` with lo <= hi.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RandomizationConfig {
-    /// Friction coefficient of every geom, U[lo, hi]; `None` keeps the model's.
+    /// Friction coefficient of every geom, U[lo, hi] within [0, 1e3]; `None` keeps the model's.
     pub friction: Option<[f64; 2]>,
-    /// Mass added to the trunk (kg), U[lo, hi]; `None` keeps the model's.
+    /// Mass added to the trunk (kg), U[lo, hi] within [-1e3, 1e3]; `None` keeps the model's.
     pub added_base_mass_kg: Option<[f64; 2]>,
-    /// Torque multiplier of each motor, drawn per motor, U[lo, hi]; `None`: 1.
+    /// Torque multiplier of each motor, drawn per motor, U[lo, hi] within (0, 1e3]; `None`: 1.
     pub motor_strength: Option<[f64; 2]>,
-    /// Multiplier of the PD stiffness Kp, U[lo, hi]; `None`: 1.
+    /// Multiplier of the PD stiffness Kp, U[lo, hi] within (0, 1e3]; `None`: 1.
     pub kp_factor: Option<[f64; 2]>,
-    /// Multiplier of the PD damping Kd, U[lo, hi]; `None`: 1.
+    /// Multiplier of the PD damping Kd, U[lo, hi] within (0, 1e3]; `None`: 1.
     pub kd_factor: Option<[f64; 2]>,
-    /// Offset of the trunk's centre of mass along each body axis (m), U[lo, hi]; `None`: 0.
+    /// Offset of the trunk's centre of mass along each body axis (m), U[lo, hi]
+    /// within [-0.3, 0.3]; `None`: 0.
     pub com_offset_m: Option<[f64; 2]>,
     pub push: PushConfig,
 }
@@ -350,6 +367,10 @@ fn check(ok: bool, key: &str, what: impl std::fmt::Display) -> Result<(), String
 const MAX_SCALE: f64 = 1e4;
 /// Largest reward weight (in magnitude) a config may set.
 const MAX_WEIGHT: f64 = 1e6;
+/// Largest risk threshold a config may set (any unit).
+const MAX_THRESHOLD: f64 = 1e9;
+/// Largest command or push speed a config may set (m/s, rad/s).
+const MAX_COMMAND: f64 = 100.0;
 
 /// `v` finite and in `[lo, hi]`.
 fn check_within(key: &str, v: f64, lo: f64, hi: f64) -> Result<(), String> {
@@ -360,11 +381,12 @@ fn check_within(key: &str, v: f64, lo: f64, hi: f64) -> Result<(), String> {
     )
 }
 
-fn check_range(r: [f64; 2], key: &str) -> Result<(), String> {
+/// `r` = [lo, hi], finite, lo <= hi, both within `[min, max]`.
+fn check_range_within(r: [f64; 2], key: &str, min: f64, max: f64) -> Result<(), String> {
     check(
-        r[0].is_finite() && r[1].is_finite() && r[0] <= r[1],
+        r[0].is_finite() && r[1].is_finite() && r[0] <= r[1] && r[0] >= min && r[1] <= max,
         key,
-        format!("must be [lo, hi] with lo <= hi, got {r:?}"),
+        format!("must be [lo, hi] with lo <= hi within [{min}, {max}], got {r:?}"),
     )
 }
 
@@ -430,11 +452,7 @@ impl EnvConfig {
             ("observation.noise_std.dof_vel", o.noise_std.dof_vel),
             ("observation.noise_level", o.noise_level),
         ] {
-            check(
-                v.is_finite() && v >= 0.0,
-                k,
-                format!("must be >= 0, got {v}"),
-            )?;
+            check_within(k, v, 0.0, MAX_SCALE)?;
         }
         Ok(())
     }
@@ -471,10 +489,11 @@ impl EnvConfig {
             format!("must be in [0, 1], got {p}"),
         )?;
         for (i, (name, t)) in self.risk.terms().into_iter().enumerate() {
-            check(
-                t.threshold.is_finite() && t.threshold >= 0.0,
+            check_within(
                 &format!("risk.{name}.threshold"),
-                "must be >= 0",
+                t.threshold,
+                0.0,
+                MAX_THRESHOLD,
             )?;
             if let Some(per) = t.per_joint {
                 check(
@@ -483,15 +502,16 @@ impl EnvConfig {
                     "applies to the joint terms only (joint_velocity, joint_acceleration, joint_torque)",
                 )?;
                 check(
-                    per.iter().all(|v| v.is_finite() && *v > 0.0),
+                    per.iter()
+                        .all(|v| v.is_finite() && *v > 0.0 && *v <= MAX_THRESHOLD),
                     &format!("risk.{name}.per_joint"),
-                    "every joint's threshold must be finite and > 0",
+                    "every joint's threshold must be in (0, 1e9]",
                 )?;
             }
             check(
-                t.weight.is_finite() && t.weight >= 0.0,
+                t.weight.is_finite() && (0.0..=MAX_WEIGHT).contains(&t.weight),
                 &format!("risk.{name}.weight"),
-                "must be >= 0 (it is subtracted)",
+                format!("must be in [0, 1e6] (it is subtracted), got {}", t.weight),
             )?;
         }
         Ok(())
@@ -500,9 +520,13 @@ impl EnvConfig {
     /// Command ranges and intervals, episode length and tilt limit.
     fn validate_commands_and_episode(&self) -> Result<(), String> {
         let c = &self.commands;
-        check_range(c.vx_mps, "commands.vx_mps")?;
-        check_range(c.vy_mps, "commands.vy_mps")?;
-        check_range(c.yaw_rate_rad_s, "commands.yaw_rate_rad_s")?;
+        for (key, r) in [
+            ("commands.vx_mps", c.vx_mps),
+            ("commands.vy_mps", c.vy_mps),
+            ("commands.yaw_rate_rad_s", c.yaw_rate_rad_s),
+        ] {
+            check_range_within(r, key, -MAX_COMMAND, MAX_COMMAND)?;
+        }
         check(
             c.resample_interval_s > 0.0,
             "commands.resample_interval_s",
@@ -518,6 +542,15 @@ impl EnvConfig {
             "episode.max_tilt_rad",
             "must be positive",
         )?;
+        let policy_dt = self.control.policy_dt_s();
+        check(
+            self.episode.length_s >= policy_dt,
+            "episode.length_s",
+            format!(
+                "must hold at least one policy step ({policy_dt} s), got {}",
+                self.episode.length_s
+            ),
+        )?;
         Ok(())
     }
 
@@ -525,11 +558,10 @@ impl EnvConfig {
     fn validate_randomization(&self) -> Result<(), String> {
         let r = &self.randomization;
         if let Some(f) = r.friction {
-            check_range(f, "randomization.friction")?;
-            check(f[0] >= 0.0, "randomization.friction", "must be >= 0")?;
+            check_range_within(f, "randomization.friction", 0.0, 1e3)?;
         }
         if let Some(m) = r.added_base_mass_kg {
-            check_range(m, "randomization.added_base_mass_kg")?;
+            check_range_within(m, "randomization.added_base_mass_kg", -1e3, 1e3)?;
         }
         for (key, range) in [
             ("randomization.motor_strength", r.motor_strength),
@@ -537,17 +569,12 @@ impl EnvConfig {
             ("randomization.kd_factor", r.kd_factor),
         ] {
             if let Some(f) = range {
-                check_range(f, key)?;
+                check_range_within(f, key, 0.0, 1e3)?;
                 check(f[0] > 0.0, key, format!("must be > 0, got {f:?}"))?;
             }
         }
         if let Some(c) = r.com_offset_m {
-            check_range(c, "randomization.com_offset_m")?;
-            check(
-                c[0].abs().max(c[1].abs()) <= 0.3,
-                "randomization.com_offset_m",
-                format!("must stay within +-0.3 m of the trunk's centre, got {c:?}"),
-            )?;
+            check_range_within(c, "randomization.com_offset_m", -0.3, 0.3)?;
         }
         Ok(())
     }
@@ -562,22 +589,22 @@ impl EnvConfig {
                 max_mps,
             } => {
                 check(
-                    interval_s > 0.0,
+                    interval_s > 0.0 && interval_s <= 1e6,
                     "randomization.push.interval_s",
-                    "must be positive",
+                    format!("must be in (0, 1e6], got {interval_s}"),
                 )?;
-                check(max_mps >= 0.0, "randomization.push.max_mps", "must be >= 0")?;
+                check_within("randomization.push.max_mps", max_mps, 0.0, MAX_COMMAND)?;
             }
             PushConfig::Force {
                 force_n,
                 every_steps,
                 hold_steps,
             } => {
-                check(force_n >= 0.0, "randomization.push.force_n", "must be >= 0")?;
+                check_within("randomization.push.force_n", force_n, 0.0, 1e5)?;
                 check(
-                    every_steps > 0,
+                    (1..=1_000_000).contains(&every_steps),
                     "randomization.push.every_steps",
-                    "must be positive",
+                    format!("must be in 1..=1000000, got {every_steps}"),
                 )?;
                 check(
                     hold_steps <= every_steps,

@@ -70,7 +70,8 @@ pub enum TerrainKind {
     Rough,
 }
 
-/// Share of the terrain-type columns given to each tile type; must sum to 1.
+/// Share of the terrain-type columns given to each tile type: each in [0, 1],
+/// summing to 1.
 /// Columns are assigned in this field order (legged_gym's order, then flat).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -116,24 +117,29 @@ impl TerrainProportions {
 #[serde(deny_unknown_fields, default)]
 pub struct TerrainConfig {
     pub kind: TerrainKind,
-    /// Tile extent along x (the level axis), m.
+    /// Tile extent along x (the level axis), m: in (0, 100], a multiple of
+    /// `horizontal_scale_m` spanning at least 4 samples.
     pub tile_length_m: f64,
-    /// Tile extent along y (the type axis), m.
+    /// Tile extent along y (the type axis), m: as `tile_length_m`.
     pub tile_width_m: f64,
-    /// Rows: difficulty levels, along x.
+    /// Rows: difficulty levels, along x; 1..=1000.
     pub num_levels: usize,
-    /// Columns: terrain types, along y.
+    /// Columns: terrain types, along y; 1..=1000.
     pub num_types: usize,
-    /// Heightfield sample spacing, m.
+    /// Heightfield sample spacing, m, in [0.01, 1].
     pub horizontal_scale_m: f64,
-    /// Height quantum, m.
+    /// Height quantum, m, in (0, 0.025]: heights are rounded to it, so a coarser
+    /// quantum rounds the smallest features away (the rough slopes' noise of
+    /// +-0.025 m at level 0; 1e30 makes every tile flat).
     pub vertical_scale_m: f64,
-    /// Flat margin around the tile grid, m. legged_gym uses 25 m; 5 m here keeps
+    /// Flat margin around the tile grid, m, in [0, 100] and a multiple of
+    /// `horizontal_scale_m`. legged_gym uses 25 m; 5 m here keeps
     /// the default grid at 901 x 1701 samples (6 MB of f32 per model copy).
     pub border_size_m: f64,
-    /// Side of the flat central square of every tile, m.
+    /// Side of the flat central square of every tile, m, in [0, the tile's shorter side].
     pub platform_size_m: f64,
-    /// Initial curriculum levels are drawn uniformly from [0, max_init_level].
+    /// Initial curriculum levels are drawn uniformly from [0, max_init_level];
+    /// below `num_levels`.
     pub max_init_level: usize,
     pub proportions: TerrainProportions,
 }
@@ -158,6 +164,10 @@ impl Default for TerrainConfig {
 
 /// The most difficulty levels (and terrain types) a terrain may have.
 pub const MAX_TERRAIN_LEVELS: usize = 1000;
+/// The coarsest height quantum (m): the rough slopes' noise at level 0.
+pub const MAX_VERTICAL_SCALE_M: f64 = ROUGH_NOISE_BASE_M;
+/// The largest tile side or border (m).
+const MAX_EXTENT_M: f64 = 100.0;
 
 /// Whether `v` is a whole number of `step`s (to 1e-6 relative).
 fn is_multiple(v: f64, step: f64) -> bool {
@@ -181,6 +191,29 @@ impl TerrainConfig {
         positive("vertical_scale_m", self.vertical_scale_m)?;
         positive("tile_length_m", self.tile_length_m)?;
         positive("tile_width_m", self.tile_width_m)?;
+        for (key, v, lo, hi) in [
+            ("horizontal_scale_m", self.horizontal_scale_m, 0.01, 1.0),
+            (
+                "vertical_scale_m",
+                self.vertical_scale_m,
+                0.0,
+                MAX_VERTICAL_SCALE_M,
+            ),
+            ("tile_length_m", self.tile_length_m, 0.0, MAX_EXTENT_M),
+            ("tile_width_m", self.tile_width_m, 0.0, MAX_EXTENT_M),
+            ("border_size_m", self.border_size_m, 0.0, MAX_EXTENT_M),
+        ] {
+            if !(lo..=hi).contains(&v) {
+                return Err(format!(
+                    "terrain.{key} must be in [{lo}, {hi}] m, got {v}{}",
+                    if key == "vertical_scale_m" {
+                        ": heights are rounded to it, and a coarser quantum rounds the terrain's features away"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+        }
         let h = self.horizontal_scale_m;
         for (key, v) in [
             ("tile_length_m", self.tile_length_m),
@@ -269,9 +302,14 @@ impl TerrainConfig {
     /// (along x, along y) sample counts of the whole grid, border included.
     fn grid_samples(&self) -> (usize, usize) {
         let b = self.samples(self.border_size_m);
-        let nx = self.num_levels * self.samples(self.tile_length_m) + 2 * b + 1;
-        let ny = self.num_types * self.samples(self.tile_width_m) + 2 * b + 1;
-        (nx, ny)
+        let side = |n: usize, tile: f64| {
+            n.saturating_mul(self.samples(tile))
+                .saturating_add(2 * b + 1)
+        };
+        (
+            side(self.num_levels, self.tile_length_m),
+            side(self.num_types, self.tile_width_m),
+        )
     }
 
     /// The tile type of column `col` (legged_gym: choice = col / num_types + 0.001

@@ -11,7 +11,7 @@ use anyhow::{bail, ensure, Context, Result};
 use tract_onnx::prelude::*;
 
 use super::rall_graph::RallGraph;
-use super::sidecar::{read_sidecar, SidecarPolicy};
+use super::sidecar::{read_sidecar, ReferencePairs, SidecarPolicy};
 use crate::env::{EnvConfig, ACT_DIM, OBS_DIM};
 use crate::learn::Learner;
 
@@ -64,8 +64,10 @@ pub fn is_onnx(path: &Path) -> bool {
 
 /// An ONNX policy: one input `obs` (`batch x width`), one output (`batch x 12`
 /// raw actions), the input gathered from rall's observation row as the sidecar
-/// lays it out.
+/// lays it out. A graph exported with a fixed batch of 1 runs robot by robot.
 pub struct OnnxPolicy {
+    /// The `.onnx` file (errors name it).
+    path: std::path::PathBuf,
     network: Network,
     /// `input[k] = rall_obs[columns[k]]`.
     columns: Vec<usize>,
@@ -81,8 +83,11 @@ pub struct OnnxPolicy {
 enum Network {
     /// rall's own export, by rall's actor forward (bit-identical to the checkpoint).
     Rall(Box<RallGraph>),
-    /// Any other graph, by tract.
-    Tract(Arc<TypedRunnableModel>),
+    /// Any other graph, by tract; `one_row`: its input has a fixed batch of 1.
+    Tract {
+        plan: Arc<TypedRunnableModel>,
+        one_row: bool,
+    },
 }
 
 /// Which runtime [`OnnxPolicy::load_with`] uses.
@@ -111,8 +116,10 @@ impl OnnxPolicy {
             input_columns,
             joint_order,
             defaulted,
+            reference,
         } = side;
         let policy = OnnxPolicy {
+            path: path.to_path_buf(),
             network,
             columns: input_columns,
             joint_order,
@@ -120,10 +127,49 @@ impl OnnxPolicy {
             defaulted,
         };
         // one zero row through the network: a wrong-shaped output is refused now
-        policy
-            .actions(&[0.0; OBS_DIM])
-            .with_context(|| format!("ONNX policy {}", path.display()))?;
+        policy.actions(&[0.0; OBS_DIM])?;
+        if let Some(r) = &reference {
+            policy.reproduces(r)?;
+        }
         Ok(policy)
+    }
+
+    /// Refuses a network that does not return the sidecar's reference actions
+    /// for its reference observations (another network than the sidecar's, a
+    /// normaliser left out, a runtime that computes otherwise).
+    fn reproduces(&self, r: &ReferencePairs) -> Result<()> {
+        let n = r.actions.len() / ACT_DIM;
+        ensure!(
+            r.observations.len() == n * self.columns.len(),
+            "ONNX policy {}: the sidecar's reference observations hold {} values for {n} rows, but its fields make rows of {}",
+            self.path.display(),
+            r.observations.len(),
+            self.columns.len()
+        );
+        let out = self.run(r.observations.clone(), n).with_context(|| {
+            format!(
+                "ONNX policy {}: the sidecar's reference observations",
+                self.path.display()
+            )
+        })?;
+        let worst = out
+            .iter()
+            .zip(&r.actions)
+            .enumerate()
+            .map(|(i, (a, b))| (i, (*a as f64 - *b as f64).abs()))
+            .fold((0, 0.0f64), |m, d| if d.1 > m.1 { d } else { m });
+        ensure!(
+            worst.1 <= r.tolerance_abs,
+            "ONNX policy {}: for the sidecar's reference observation {} the network returns {} as action {} where the sidecar says {} (off by {:.3e}, tolerance {:.1e}): the network is not the one its sidecar describes, or its input is not laid out as the sidecar's fields say",
+            self.path.display(),
+            worst.0 / ACT_DIM,
+            out[worst.0],
+            worst.0 % ACT_DIM,
+            r.actions[worst.0],
+            worst.1,
+            r.tolerance_abs
+        );
+        Ok(())
     }
 
     /// Width of the network's input.
@@ -142,16 +188,19 @@ impl OnnxPolicy {
         let w = self.columns.len();
         let out = match &self.network {
             Network::Rall(g) => g.actions(&input, n),
-            Network::Tract(plan) => {
-                let x = tract_ndarray::Array2::from_shape_vec((n, w), input)?;
-                let out = plan.run(tvec!(Tensor::from(x).into()))?;
-                let view = out[0].to_plain_array_view::<f32>()?;
-                ensure!(
-                    view.shape() == [n, ACT_DIM],
-                    "the network returned shape {:?} for {n} observations, expected [{n}, {ACT_DIM}]",
-                    view.shape()
-                );
-                view.as_slice().context("a contiguous output")?.to_vec()
+            Network::Tract {
+                plan,
+                one_row: false,
+            } => run_plan(plan, input, n, w)?,
+            Network::Tract {
+                plan,
+                one_row: true,
+            } => {
+                let mut out = Vec::with_capacity(n * ACT_DIM);
+                for row in input.chunks_exact(w) {
+                    out.extend(run_plan(plan, row.to_vec(), 1, w)?);
+                }
+                out
             }
         };
         ensure!(
@@ -163,8 +212,34 @@ impl OnnxPolicy {
     }
 }
 
+/// Runs tract's `plan` on `n` rows of `w` values.
+fn run_plan(
+    plan: &Arc<TypedRunnableModel>,
+    input: Vec<f32>,
+    n: usize,
+    w: usize,
+) -> Result<Vec<f32>> {
+    let x = tract_ndarray::Array2::from_shape_vec((n, w), input)?;
+    let out = plan.run(tvec!(Tensor::from(x).into()))?;
+    let view = out[0].to_plain_array_view::<f32>()?;
+    ensure!(
+        view.shape() == [n, ACT_DIM],
+        "the network returned shape {:?} for {n} observations, expected [{n}, {ACT_DIM}]",
+        view.shape()
+    );
+    Ok(view.as_slice().context("a contiguous output")?.to_vec())
+}
+
 impl Actor for OnnxPolicy {
     fn actions(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        self.actions_in_rall_order(obs)
+            .with_context(|| format!("ONNX policy {}", self.path.display()))
+    }
+}
+
+impl OnnxPolicy {
+    /// [`Actor::actions`] without the file's name on errors.
+    fn actions_in_rall_order(&self, obs: &[f32]) -> Result<Vec<f32>> {
         ensure!(
             obs.len().is_multiple_of(OBS_DIM),
             "observation rows of {OBS_DIM} expected, got {} values",
@@ -204,11 +279,14 @@ fn load_network(path: &Path, width: usize, runtime: OnnxRuntime) -> Result<Netwo
             return Ok(Network::Rall(Box::new(g)));
         }
     }
-    load_plan(path, width).map(Network::Tract)
+    let (plan, one_row) = load_plan(path, width)?;
+    Ok(Network::Tract { plan, one_row })
 }
 
-/// The optimised tract plan of `path`, checked to take one `batch x width` input.
-fn load_plan(path: &Path, width: usize) -> Result<Arc<TypedRunnableModel>> {
+/// The optimised tract plan of `path`, checked to take one `batch x width`
+/// input, and whether that batch is fixed at 1 (the plan then runs robot by
+/// robot). Another fixed batch is refused.
+fn load_plan(path: &Path, width: usize) -> Result<(Arc<TypedRunnableModel>, bool)> {
     let model = tract_onnx::onnx()
         .model_for_path(path)
         .with_context(|| format!("reading {}", path.display()))?;
@@ -231,8 +309,15 @@ fn load_plan(path: &Path, width: usize) -> Result<Arc<TypedRunnableModel>> {
             "the network's input is {w} wide but the sidecar's observation.fields hold {width} values"
         );
     }
-    typed
+    let fixed_batch = fact.shape[0].to_i64().ok();
+    if let Some(b) = fixed_batch.filter(|&b| b != 1) {
+        bail!(
+            "the network's input has a fixed batch of {b}, and rall feeds any number of robots: export it with a dynamic batch axis (torch.onnx.export(..., dynamic_axes={{\"obs\": {{0: \"batch\"}}}})) or a batch of 1, which rall runs robot by robot"
+        );
+    }
+    let plan = typed
         .into_optimized()
         .context("tract cannot optimise the graph")?
-        .into_runnable()
+        .into_runnable()?;
+    Ok((plan, fixed_batch == Some(1)))
 }

@@ -231,6 +231,14 @@ pub fn select_as(
 mod tests {
     use super::*;
 
+    #[test]
+    fn the_selection_files_are_run_entries() {
+        // a new run refuses folders with files rall did not write: these are rall's
+        for f in [SELECTED, SELECTION_CSV, TEACHER_SELECTION_CSV] {
+            assert!(crate::runner::run_dir::RUN_ENTRIES.contains(&f), "{f}");
+        }
+    }
+
     fn cand(iteration: usize, fall_rate: f64) -> Candidate {
         Candidate {
             iteration,

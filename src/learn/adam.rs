@@ -10,8 +10,11 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AdamConfig {
+    /// First-moment decay, in [0, 0.999999].
     pub beta1: f32,
+    /// Second-moment decay, in [0, 0.9999999].
     pub beta2: f32,
+    /// Added to the root of the second moment, in [1e-30, 1].
     pub eps: f32,
 }
 

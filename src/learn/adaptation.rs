@@ -19,12 +19,17 @@ use super::nets::{GaussianActor, MlpCache};
 pub struct AdaptationConfig {
     /// Observation group it reads (the proprioceptive history).
     pub input: String,
-    /// Hidden sizes (ELU) of the MLP over the flattened history (walk-these-ways style).
+    /// Hidden sizes (ELU) of the MLP over the flattened history (walk-these-ways
+    /// style): at most 16 layers, each 1..=8192.
     pub hidden: Vec<usize>,
-    /// Phase-2 iterations (each: one rollout of num_envs x steps_per_env, then regression).
+    /// Phase-2 iterations (each: one rollout of num_envs x steps_per_env, then
+    /// regression), 1..=100,000,000: 0 would leave the student untrained.
     pub iterations: usize,
+    /// Adam's rate for the regression, in [1e-12, 1].
     pub learning_rate: f32,
+    /// Passes over each rollout, 1..=1000.
     pub epochs: usize,
+    /// Mini-batches per pass, 1..=1,048,576.
     pub mini_batches: usize,
 }
 

@@ -27,9 +27,9 @@ use serde::{Deserialize, Serialize};
 pub struct EncoderConfig {
     /// Observation group the encoder reads (RMA: the privileged environment factors).
     pub input: String,
-    /// Hidden sizes (ELU); RMA's code: 256-128.
+    /// Hidden sizes (ELU); RMA's code: 256-128. At most 16 layers, each 1..=8192.
     pub hidden: Vec<usize>,
-    /// Latent size; RMA: 8.
+    /// Latent size; RMA: 8. 1..=8192.
     pub latent_dim: usize,
 }
 
@@ -59,28 +59,31 @@ pub struct LearnerConfig {
     /// Another distortion (e.g. Wang) instead of `cvar_eta` (IQN critic only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub distortion: Option<Distortion>,
-    /// Actor hidden sizes (ELU).
+    /// Actor hidden sizes (ELU): at most 16 layers, each 1..=8192.
     pub actor_hidden: Vec<usize>,
-    /// Critic hidden sizes (ELU); for IQN the last one is the merge width.
+    /// Critic hidden sizes (ELU); for IQN the last one is the merge width. 1 to
+    /// 16 layers, each 1..=8192.
     pub critic_hidden: Vec<usize>,
-    /// Initial action std.
+    /// Initial action std, in [1e-12, 1e3].
     pub init_noise_std: f32,
     /// The actor's output layer (weights and bias) is multiplied by this after
     /// PyTorch's default init: 0.01 starts every robot near the default pose
-    /// (Andrychowicz et al. 2021). 1 = rsl_rl's init.
+    /// (Andrychowicz et al. 2021). 1 = rsl_rl's init. In (0, 1e3].
     #[serde(skip_serializing_if = "is_one")]
     pub actor_output_init_scale: f32,
-    /// Cosine basis size of the tau embedding: `cos(pi i tau)`, `i = 0..num_cos`.
+    /// Cosine basis size of the tau embedding: `cos(pi i tau)`, `i = 0..num_cos`;
+    /// 1..=8192.
     pub num_cos: usize,
-    /// `N`: taus ~ U[0,1] per mini-batch for the critic loss.
+    /// `N`: taus ~ U[0,1] per mini-batch for the critic loss; 1..=8192.
     pub num_taus: usize,
-    /// `N'`: target samples per transition.
+    /// `N'`: target samples per transition; 1..=8192.
     pub num_target_taus: usize,
-    /// `K`: points of the fixed grid of the distorted value.
+    /// `K`: points of the fixed grid of the distorted value; 1..=8192.
     pub num_value_taus: usize,
-    /// Huber threshold of the quantile loss.
+    /// Huber threshold of the quantile loss, in [1e-12, 1e6].
     pub kappa: f32,
-    /// Horizon parameter of the IQN targets (`storage` docs); 0 = 1-step targets.
+    /// Horizon parameter of the IQN targets (`storage` docs); 0 = 1-step
+    /// targets. In [0, 1].
     pub target_lambda: f32,
     /// Observation groups the actor reads directly, in order.
     pub actor_inputs: Vec<String>,
@@ -202,8 +205,10 @@ impl LearnerConfig {
         ensure!(self.kappa > 0.0, "kappa must be positive");
         ensure!(self.init_noise_std > 0.0, "init_noise_std must be positive");
         ensure!(
-            self.actor_output_init_scale.is_finite() && self.actor_output_init_scale > 0.0,
-            "learner.actor_output_init_scale must be positive (1 = rsl_rl's init), got {}",
+            self.actor_output_init_scale.is_finite()
+                && self.actor_output_init_scale > 0.0
+                && self.actor_output_init_scale <= 1e3,
+            "learner.actor_output_init_scale must be in (0, 1e3] (1 = rsl_rl's init), got {}",
             self.actor_output_init_scale
         );
         ensure!(
@@ -299,7 +304,7 @@ impl LearnerConfig {
             check_count(
                 "learner.adaptation.iterations",
                 a.iterations,
-                0,
+                1,
                 100_000_000,
             )?;
         }

@@ -47,30 +47,40 @@ pub enum GradClip {
     PerNetwork,
 }
 
-/// PPO hyper-parameters; `Default` = rsl_rl / the paper.
+/// PPO hyper-parameters; `Default` = rsl_rl / the paper. Each key's accepted
+/// range is in its comment; [`PpoConfig::validate`] refuses anything outside it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PpoConfig {
-    /// Passes over the rollout per update.
+    /// Passes over the rollout per update, 1..=1000.
     pub num_learning_epochs: usize,
-    /// Mini-batches per epoch (1536 samples each at 256 envs x 24 steps).
+    /// Mini-batches per epoch (1536 samples each at 256 envs x 24 steps),
+    /// 1..=1,048,576 and at most `num_envs x steps_per_env`.
     pub num_mini_batches: usize,
-    /// Surrogate clip epsilon.
+    /// Surrogate clip epsilon, in [1e-6, 10].
     pub clip_param: f32,
-    /// Discount.
+    /// Discount, in [0, 1]. 0 is a legitimate (myopic) experiment: the critic
+    /// and the actor learn from one-step rewards.
     pub gamma: f32,
-    /// GAE lambda.
+    /// GAE lambda, in [0, 1] (0: one-step advantages).
     pub lam: f32,
+    /// Weight of the critic's loss, in [0, 1e6] (0: the critic never learns,
+    /// an ablation; the actor still does).
     pub value_loss_coef: f32,
+    /// Weight of the entropy bonus, in [-1e3, 1e3].
     pub entropy_coef: f32,
-    /// Initial Adam learning rate.
+    /// Initial Adam learning rate, in (0, 1]: 0 would never change a weight.
     pub learning_rate: f32,
     pub schedule: LrSchedule,
-    /// Target KL(old || new) per sample for the adaptive schedule.
+    /// Target KL(old || new) per sample for the adaptive schedule, in [1e-12, 1e3].
     pub desired_kl: f32,
+    /// Floor of the adaptive schedule, in (0, 1] and at most `max_lr` (0 under
+    /// `schedule = "adaptive"` would let the rate reach 0 and stay there;
+    /// under `"fixed"` it is unused and may be 0).
     pub min_lr: f32,
+    /// Ceiling of the adaptive schedule, in [1e-12, 1].
     pub max_lr: f32,
-    /// Clip the L2 norm of the gradients to this (see `grad_clip`).
+    /// Clip the L2 norm of the gradients to this (see `grad_clip`), in [1e-12, 1e12].
     pub max_grad_norm: f32,
     /// Over which parameters `max_grad_norm` applies.
     pub grad_clip: GradClip,
@@ -151,9 +161,17 @@ impl PpoConfig {
             1e6,
         )?;
         check_f32("learner.ppo.entropy_coef", self.entropy_coef, -1e3, 1e3)?;
-        check_f32("learner.ppo.learning_rate", self.learning_rate, 0.0, 1.0)?;
+        anyhow::ensure!(
+            self.learning_rate.is_finite() && self.learning_rate > 0.0 && self.learning_rate <= 1.0,
+            "learner.ppo.learning_rate must be in (0, 1], got {}: a rate of 0 never changes a weight",
+            self.learning_rate
+        );
         check_f32("learner.ppo.desired_kl", self.desired_kl, 1e-12, 1e3)?;
         check_f32("learner.ppo.min_lr", self.min_lr, 0.0, 1.0)?;
+        anyhow::ensure!(
+            self.schedule == LrSchedule::Fixed || self.min_lr > 0.0,
+            "learner.ppo.min_lr must be above 0 under schedule = \"adaptive\": a rate that reaches 0 stays there and nothing is learned"
+        );
         check_f32("learner.ppo.max_lr", self.max_lr, 1e-12, 1.0)?;
         anyhow::ensure!(
             self.min_lr <= self.max_lr,

@@ -12,6 +12,9 @@ use serde::{Deserialize, Serialize};
 /// Taus of the interquartile range `IQR = Z_0.75 - Z_0.25` (paper, meta controller).
 pub const IQR_TAUS: [f32; 2] = [0.25, 0.75];
 
+/// The largest Wang lambda (in magnitude) a config may set.
+pub const MAX_WANG_LAMBDA: f32 = 10.0;
+
 /// A distortion risk measure.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
@@ -20,7 +23,8 @@ pub enum Distortion {
     /// returns; `eta` in `(0, 1]`, `1` is risk neutral, RALL uses `0.5`.
     Cvar { eta: f32 },
     /// Wang (2000): `beta(tau) = Phi(Phi^-1(tau) + lambda)`; `lambda < 0` is
-    /// risk averse, `0` risk neutral (IQN paper's sign convention).
+    /// risk averse, `0` risk neutral (IQN paper's sign convention); `lambda` in
+    /// [-10, 10] (beyond, every distorted tau rounds to 0 or 1).
     Wang { lambda: f32 },
 }
 
@@ -31,8 +35,12 @@ impl Distortion {
             Distortion::Cvar { eta } if !(eta > 0.0 && eta <= 1.0) => {
                 anyhow::bail!("CVaR eta must be in (0, 1], got {eta}")
             }
-            Distortion::Wang { lambda } if !lambda.is_finite() => {
-                anyhow::bail!("Wang lambda must be finite, got {lambda}")
+            Distortion::Wang { lambda }
+                if !(lambda.is_finite() && lambda.abs() <= MAX_WANG_LAMBDA) =>
+            {
+                anyhow::bail!(
+                    "Wang lambda must be in [-{MAX_WANG_LAMBDA}, {MAX_WANG_LAMBDA}], got {lambda}: beyond, every distorted tau rounds to 0 or 1"
+                )
             }
             _ => Ok(()),
         }

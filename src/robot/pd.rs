@@ -8,19 +8,22 @@ use super::layout::NUM_JOINTS;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ControlConfig {
-    /// Physics time step (s).
+    /// Physics time step (s), in [1e-4, 0.05]: finer steps make an episode
+    /// millions of physics steps (1e-12 never finishes one), coarser ones run
+    /// PD below 20 Hz.
     pub physics_dt_s: f64,
-    /// Physics steps per policy step (4 -> 50 Hz policy at dt 0.005).
+    /// Physics steps per policy step (4 -> 50 Hz policy at dt 0.005),
+    /// 1..=1000, with the policy step (`physics_dt_s x decimation`) at most 0.5 s.
     pub decimation: usize,
-    /// Proportional gain (N m / rad).
+    /// Proportional gain (N m / rad), in (0, 1e6].
     pub kp_nm_per_rad: f64,
-    /// Derivative gain (N m s / rad).
+    /// Derivative gain (N m s / rad), in [0, 1e6].
     pub kd_nm_s_per_rad: f64,
-    /// q_target = q_default + action_scale * action (rad per unit action).
+    /// q_target = q_default + action_scale * action (rad per unit action), in (0, 100].
     pub action_scale_rad: f64,
-    /// Actions are clipped to [-clip, clip] before scaling.
+    /// Actions are clipped to [-clip, clip] before scaling, clip in (0, 1e6].
     pub clip_actions: f64,
-    /// Torque limits (N m) of hip, thigh, calf motors.
+    /// Torque limits (N m) of hip, thigh, calf motors, each in (0, 1e4].
     pub torque_limits_nm: [f64; 3],
     /// Keyframe holding the default joint angles and the initial base pose.
     pub default_keyframe: String,
@@ -40,6 +43,13 @@ impl Default for ControlConfig {
         }
     }
 }
+
+/// Finest physics step a config may set (s).
+pub const MIN_PHYSICS_DT_S: f64 = 1e-4;
+/// Coarsest physics step a config may set (s).
+pub const MAX_PHYSICS_DT_S: f64 = 0.05;
+/// Longest policy step a config may set (s).
+pub const MAX_POLICY_DT_S: f64 = 0.5;
 
 impl ControlConfig {
     /// Policy period (s).
@@ -72,19 +82,35 @@ impl ControlConfig {
                 self.decimation
             ));
         }
-        if self.physics_dt_s > 1.0 || self.kp_nm_per_rad > 1e6 || self.kd_nm_s_per_rad > 1e6 {
+        if !(MIN_PHYSICS_DT_S..=MAX_PHYSICS_DT_S).contains(&self.physics_dt_s) {
             return Err(format!(
-                "control: physics_dt_s ({} s) must be at most 1, kp_nm_per_rad ({}) and kd_nm_s_per_rad ({}) at most 1e6",
-                self.physics_dt_s, self.kp_nm_per_rad, self.kd_nm_s_per_rad
+                "control.physics_dt_s must be in [{MIN_PHYSICS_DT_S}, {MAX_PHYSICS_DT_S}] s, got {}: a finer step makes an episode millions of physics steps, a coarser one runs PD below 20 Hz",
+                self.physics_dt_s
             ));
+        }
+        if self.policy_dt_s() > MAX_POLICY_DT_S {
+            return Err(format!(
+                "control.physics_dt_s x control.decimation = {} s: the policy step must be at most {MAX_POLICY_DT_S} s",
+                self.policy_dt_s()
+            ));
+        }
+        for (key, v, hi) in [
+            ("control.kp_nm_per_rad", self.kp_nm_per_rad, 1e6),
+            ("control.kd_nm_s_per_rad", self.kd_nm_s_per_rad, 1e6),
+            ("control.action_scale_rad", self.action_scale_rad, 100.0),
+            ("control.clip_actions", self.clip_actions, 1e6),
+        ] {
+            if v > hi {
+                return Err(format!("{key} must be at most {hi:e}, got {v}"));
+            }
         }
         if self
             .torque_limits_nm
             .iter()
-            .any(|&t| !(t.is_finite() && t > 0.0))
+            .any(|&t| !(t.is_finite() && t > 0.0 && t <= 1e4))
         {
             return Err(format!(
-                "control.torque_limits_nm must be positive, got {:?}",
+                "control.torque_limits_nm must each be in (0, 1e4] N m, got {:?}",
                 self.torque_limits_nm
             ));
         }

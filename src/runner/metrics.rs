@@ -2,8 +2,7 @@
 //! appended to `metrics.csv`.
 
 use std::fs::{File, OpenOptions};
-use std::io::{BufWriter, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
@@ -199,8 +198,11 @@ fn column_map(old_head: &str, new_head: &str) -> Vec<Option<usize>> {
         .collect()
 }
 
+/// A metrics file open for appending: each row is appended whole or not at
+/// all ([`crate::fsio::append_whole`]), and errors name the file's full path.
 pub struct MetricsCsv {
-    out: BufWriter<File>,
+    out: File,
+    path: PathBuf,
 }
 
 fn header() -> String {
@@ -292,23 +294,25 @@ impl MetricsCsv {
             || std::fs::metadata(path)
                 .map(|m| m.len() == 0)
                 .unwrap_or(true);
-        let f = OpenOptions::new()
+        let out = OpenOptions::new()
             .create(true)
             .append(true)
             .open(path)
             .with_context(|| format!("opening {}", path.display()))?;
-        let mut out = BufWriter::new(f);
+        let mut csv = MetricsCsv {
+            out,
+            path: path.to_path_buf(),
+        };
         if is_new {
-            writeln!(out, "{head}")?;
+            csv.write_line(head)?;
         }
-        Ok(MetricsCsv { out })
+        Ok(csv)
     }
 
-    /// Appends one already formatted row.
+    /// Appends one already formatted row (and its newline) whole, or nothing.
     pub fn write_line(&mut self, row: &str) -> Result<()> {
-        writeln!(self.out, "{row}").context("writing metrics")?;
-        self.out.flush().context("writing metrics")?;
-        Ok(())
+        let line = format!("{row}\n");
+        crate::fsio::append_whole(&mut self.out, &self.path, line.as_bytes())
     }
 
     pub fn write(&mut self, r: &IterationRow) -> Result<()> {
@@ -380,8 +384,6 @@ impl MetricsCsv {
         for v in r.risk_fired_before_fall {
             row.push_str(&format!(",{v}"));
         }
-        writeln!(self.out, "{row}").context("writing metrics.csv")?;
-        self.out.flush().context("writing metrics.csv")?;
-        Ok(())
+        self.write_line(&row)
     }
 }

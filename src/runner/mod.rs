@@ -3,6 +3,7 @@
 mod adapt;
 pub mod dist;
 mod faults;
+pub mod identity;
 mod job;
 pub mod metrics;
 pub mod policy_file;
@@ -15,6 +16,7 @@ pub mod train;
 
 pub use adapt::{install_teacher, restart_adaptation};
 pub use dist::World;
+pub use identity::{RunIdentity, IDENTITY_FILE};
 pub use policy_file::{load_policy, load_policy_bytes, save_policy, LoadedPolicy, Progress};
 pub use run_dir::{RunDir, LATEST};
 pub use train::{train, train_in, IterationObserver, PhaseOneOnly, TrainSummary, Trainer};

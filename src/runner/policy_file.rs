@@ -7,6 +7,7 @@ use std::sync::Mutex;
 
 use anyhow::{bail, Context, Result};
 
+use super::identity::RunIdentity;
 use crate::config::TrainConfig;
 use crate::env::observation::layout_string;
 use crate::env::{ACT_DIM, OBS_DIM};
@@ -34,6 +35,9 @@ pub struct Progress {
     /// last episode statistics; see `train`), rank 0 first: what a resume needs
     /// to continue bit for bit. Empty in checkpoints written before it existed.
     pub rank_states: Vec<Vec<u8>>,
+    /// The run this state belongs to (`None` in checkpoints written before
+    /// identities existed).
+    pub identity: Option<RunIdentity>,
 }
 
 /// Byte tensor of the learner's exact state ([`Learner::exact_state`]).
@@ -77,6 +81,9 @@ pub fn save_policy(
     meta.insert("wall_s".into(), format!("{:.3}", progress.wall_s));
     meta.insert("rng_seed".into(), progress.rng_seed.to_string());
     meta.insert("rng_word_pos".into(), progress.rng_word_pos.to_string());
+    if let Some(identity) = &progress.identity {
+        identity.to_meta(&mut meta);
+    }
     if let Some(levels) = &progress.terrain_levels {
         let text: Vec<String> = levels.iter().map(|l| l.to_string()).collect();
         meta.insert("terrain_levels".into(), text.join(","));
@@ -269,6 +276,7 @@ fn policy_from_parts(ckpt: Checkpoint, path: &Path) -> Result<LoadedPolicy> {
             })
             .transpose()?,
         rank_states: rank_states(&blobs),
+        identity: RunIdentity::from_meta(&meta, path)?,
     };
     // the row's groups: stored since groups exist, else the policy group alone
     let stored_layout = match meta.get("obs_groups") {

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 
 use super::dist::World;
+use super::identity::{resumed_identity, RunIdentity};
 use super::job::broadcast_learner_state;
 use super::policy_file::{load_policy_bytes, LoadedPolicy, Progress};
 use super::resume::exact_state;
@@ -36,6 +37,10 @@ pub(super) fn open_run(
     resume: bool,
 ) -> Result<Opened> {
     let (cfg, path, resumed) = find_resume_point(world, dir, cfg, resume)?;
+    let identity = match (&resumed, world.is_root()) {
+        (Some(loaded), true) => Some(checked_identity(dir, loaded, &path, &cfg)?),
+        _ => None,
+    };
     let exact = resumed
         .as_ref()
         .and_then(|loaded| exact_or_note(world, loaded, &path));
@@ -61,6 +66,12 @@ pub(super) fn open_run(
         share_rank_zero_state(world, &mut cfg, &mut learner, &mut progress, resumed)?;
     }
     if world.is_root() {
+        let identity = match identity {
+            Some(checked) => checked,
+            None => identity_of_a_start(dir, &cfg, resume)?,
+        };
+        identity.write(&dir.root)?;
+        progress.identity = Some(identity);
         crate::fsio::write_atomic(&dir.root.join("config.toml"), cfg.to_toml().as_bytes())?;
     }
     Ok(Opened {
@@ -70,6 +81,34 @@ pub(super) fn open_run(
         resumed_from,
         exact,
     })
+}
+
+/// The identity the run resumed from `loaded` (at `path`) goes on under;
+/// refuses a checkpoint of another run than the directory's.
+fn checked_identity(
+    dir: &RunDir,
+    loaded: &LoadedPolicy,
+    path: &std::path::Path,
+    cfg: &TrainConfig,
+) -> Result<RunIdentity> {
+    let stored = RunIdentity::read(&dir.root)?;
+    resumed_identity(
+        &dir.root,
+        stored,
+        loaded.progress.identity.as_ref(),
+        path,
+        cfg,
+    )
+}
+
+/// The identity of a run starting at iteration 0: the directory's own when a
+/// run stopped before its first checkpoint starts again, else a new one.
+fn identity_of_a_start(dir: &RunDir, cfg: &TrainConfig, resume: bool) -> Result<RunIdentity> {
+    let stored = match resume {
+        true => RunIdentity::read(&dir.root)?,
+        false => None,
+    };
+    Ok(stored.unwrap_or_else(|| RunIdentity::new(cfg)))
 }
 
 /// Rank 0 picks and loads the checkpoint (none: the run starts again) and
@@ -154,6 +193,7 @@ fn resumed_state(
 ) -> Result<(TrainConfig, Learner, Progress)> {
     let stored = keep_runner_settings(loaded.config, cfg, loaded.progress.iteration)
         .with_context(|| format!("resuming from {}", path.display()))?;
+    check_iterations_left(&stored, loaded.progress.iteration, path)?;
     if world.is_root() {
         println!(
             "resuming {} from {} at iteration {} (lr {:.2e}); {} envs x {} steps{}, {}, seed {}",
@@ -169,6 +209,22 @@ fn resumed_state(
         );
     }
     Ok((stored, loaded.learner, loaded.progress))
+}
+
+/// Refuses a resume that would train nothing: a run (other than RMA's, whose
+/// phase 2 follows its phase-1 target) at or past its target.
+fn check_iterations_left(
+    stored: &TrainConfig,
+    iteration: usize,
+    path: &std::path::Path,
+) -> Result<()> {
+    let target = stored.runner.iterations;
+    anyhow::ensure!(
+        stored.learner.adaptation.is_some() || iteration < target,
+        "{} is at iteration {iteration} and the run's target is {target}: there is nothing to train; pass --iterations N with N above {iteration} to train on",
+        path.display()
+    );
+    Ok(())
 }
 
 /// A validated `cfg` with the networks and progress of its iteration 0.
