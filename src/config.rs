@@ -220,6 +220,11 @@ impl TrainConfig {
             .validate()
             .map_err(|e| anyhow::anyhow!("invalid [env] value: {e}"))?;
         self.learner.validate().context("invalid [learner] value")?;
+        anyhow::ensure!(
+            self.learner.ppo.learning_rate > 0.0,
+            "learner.ppo.learning_rate must be in (0, 1], got {}: a rate of 0 never changes a weight",
+            self.learner.ppo.learning_rate
+        );
         // every group a network reads must be one the env writes
         let layout = self.env.obs_layout();
         let l = &self.learner;

@@ -161,11 +161,9 @@ impl PpoConfig {
             1e6,
         )?;
         check_f32("learner.ppo.entropy_coef", self.entropy_coef, -1e3, 1e3)?;
-        anyhow::ensure!(
-            self.learning_rate.is_finite() && self.learning_rate > 0.0 && self.learning_rate <= 1.0,
-            "learner.ppo.learning_rate must be in (0, 1], got {}: a rate of 0 never changes a weight",
-            self.learning_rate
-        );
+        // 0 is allowed here (a learner whose weights stay put is a test fixture);
+        // a training run refuses it (`TrainConfig::validate`)
+        check_f32("learner.ppo.learning_rate", self.learning_rate, 0.0, 1.0)?;
         check_f32("learner.ppo.desired_kl", self.desired_kl, 1e-12, 1e3)?;
         check_f32("learner.ppo.min_lr", self.min_lr, 0.0, 1.0)?;
         anyhow::ensure!(
