@@ -214,32 +214,38 @@ fn sigterm_writes_a_checkpoint_and_exits_cleanly() {
     );
 }
 
+/// `rall train --config cfg --run-dir run` with fault-injection variable `var` set to
+/// `value`: its output and its stderr as text.
+fn train_with_fault(
+    cfg: &Path,
+    run: &Path,
+    var: &str,
+    value: &str,
+) -> (std::process::Output, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
+        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
+        .arg(run)
+        .env(var, value)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    (out, stderr)
+}
+
 #[test]
 fn a_run_that_goes_numerically_wrong_stops_with_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = tiny_config_file(dir.path(), 5);
     // before any checkpoint: the error says none was written (no file named)
     let run = dir.path().join("early");
-    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
-        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
-        .arg(&run)
-        .env("RALL_FAULT_NAN", "1")
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let (out, stderr) = train_with_fault(&cfg, &run, "RALL_FAULT_NAN", "1");
     assert!(!out.status.success(), "a diverged run must fail: {stderr}");
     assert!(stderr.contains("diverged"), "{stderr}");
     assert!(stderr.contains("no checkpoint was written"), "{stderr}");
     assert!(!run.join(LATEST).exists());
     // later: it names the last good checkpoint, and nothing non-finite is saved
     let run = dir.path().join("run");
-    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
-        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
-        .arg(&run)
-        .env("RALL_FAULT_NAN", "3")
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let (out, stderr) = train_with_fault(&cfg, &run, "RALL_FAULT_NAN", "3");
     assert!(!out.status.success(), "a diverged run must fail: {stderr}");
     assert!(stderr.contains("model_000002.safetensors"), "{stderr}");
     all_checkpoints_load(&run);
@@ -737,13 +743,7 @@ fn a_full_disk_during_the_metrics_append_leaves_whole_rows_and_names_the_path() 
     let cfg = tiny_config_file(dir.path(), 3);
     let run = dir.path().join("run");
     // appends to metrics.csv: the header, row 1, then row 2 meets a full disk
-    let out = Command::new(env!("CARGO_BIN_EXE_rall"))
-        .args(["train", "--config", cfg.to_str().unwrap(), "--run-dir"])
-        .arg(&run)
-        .env("RALL_FAULT_DISK_FULL", "metrics.csv:3")
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let (out, stderr) = train_with_fault(&cfg, &run, "RALL_FAULT_DISK_FULL", "metrics.csv:3");
     assert!(
         !out.status.success(),
         "a failed append stops the run: {stderr}"
