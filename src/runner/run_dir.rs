@@ -254,6 +254,12 @@ impl RunDir {
                         path.display()
                     )
                 }
+                if loaded.evaluation_only {
+                    anyhow::bail!(
+                        "{} is an evaluation file (no optimiser or environment state): it cannot be resumed",
+                        path.display()
+                    )
+                }
                 Ok(loaded)
             })
         };
