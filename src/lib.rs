@@ -36,7 +36,8 @@
 //! - `runner`: `train` (the `Trainer` loop), `setup` (fresh start or resume),
 //!   `run_dir` (files and lock), `job` (what crosses MPI ranks), `status` (bar and log
 //!   lines), `faults` (fault injection, divergence stop), `identity` (which run a
-//!   checkpoint belongs to), `metrics`, `policy_file`, `resume` (exact-resume state),
+//!   checkpoint belongs to), `metrics`, `policy_file`, `manifest` (shipped weights
+//!   and their SHA-256), `resume` (exact-resume state),
 //!   `adapt` (RMA phase 2 in a run), `dist` (MPI world), `scaling` (`rall bench
 //!   scaling`: where an iteration's time goes, projected to more cores).
 //! - `eval`: `tracking`, `scenario`, `ground`, `mjcf`, `rollout`, `ttf`, `platform`,

@@ -1,4 +1,5 @@
-//! `rall checkpoint`: what a checkpoint file holds, and its actor-only copy.
+//! `rall checkpoint`: what a checkpoint file holds, its slim copies (actor-only,
+//! evaluation-only), and the manifest of shipped weights.
 
 use std::path::{Path, PathBuf};
 
@@ -7,7 +8,10 @@ use clap::{Args, Subcommand};
 
 use crate::learn::read_checkpoint;
 use crate::runner::load_policy;
-use crate::runner::policy_file::{is_actor_only, save_actor_only};
+use crate::runner::manifest;
+use crate::runner::policy_file::{
+    is_actor_only, is_evaluation_only, save_actor_only, save_evaluation_only,
+};
 
 #[derive(Debug, Args)]
 pub struct CheckpointArgs {
@@ -35,6 +39,25 @@ pub enum CheckpointCommand {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Write what evaluation reads of a checkpoint (actor, critic, observation
+    /// normaliser, config and progress; no optimiser moments or environment state,
+    /// about a third of a PPO run state): every benchmark and critic analysis gives
+    /// the same numbers as on the full file; it never resumes.
+    EvaluationOnly {
+        /// The checkpoint to read (a full one: it must hold the trained critic).
+        #[arg(long)]
+        checkpoint: PathBuf,
+        /// The file to write (written atomically).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Write DIR/MANIFEST: the SHA-256 and size of every binary (.safetensors,
+    /// .onnx) under DIR.
+    Manifest { dir: PathBuf },
+    /// Check every binary under DIR against DIR/MANIFEST (size and SHA-256; a
+    /// missing, changed or unlisted file is named) and every listed checkpoint's
+    /// tensor checksums; exit 1 when anything differs.
+    Verify { dir: PathBuf },
 }
 
 pub fn run(args: &CheckpointArgs) -> Result<()> {
@@ -51,7 +74,62 @@ pub fn run(args: &CheckpointArgs) -> Result<()> {
             println!("{}", describe(out)?);
             Ok(())
         }
+        CheckpointCommand::EvaluationOnly { checkpoint, out } => {
+            refuse_to_replace_a_run_state(checkpoint, out)?;
+            save_evaluation_only(checkpoint, out)?;
+            println!("{}", describe(out)?);
+            Ok(())
+        }
+        CheckpointCommand::Manifest { dir } => {
+            let m = manifest::write(dir)?;
+            let total: u64 = m.values().map(|e| e.size_bytes).sum();
+            println!(
+                "wrote {}: {} files, {:.1} MB",
+                dir.join(manifest::MANIFEST).display(),
+                m.len(),
+                total as f64 / 1e6
+            );
+            Ok(())
+        }
+        CheckpointCommand::Verify { dir } => verify(dir),
     }
+}
+
+/// `rall checkpoint verify DIR`: the manifest's sizes and hashes, then each listed
+/// checkpoint's own tensor checksums.
+fn verify(dir: &Path) -> Result<()> {
+    let (listed, mut problems) = manifest::check(dir)?;
+    let mut lines: Vec<String> = problems.drain(..).map(|p| p.describe(dir)).collect();
+    let mut unverified = 0;
+    for rel in listed.keys().filter(|r| r.ends_with(".safetensors")) {
+        let path = manifest::full_path(dir, rel);
+        match read_checkpoint(&path) {
+            Ok(c) if !c.verified => unverified += 1,
+            Ok(_) => {}
+            Err(e) if path.exists() => lines.push(format!("{}: {e:#}", path.display())),
+            Err(_) => {} // already named as missing
+        }
+    }
+    let total: u64 = listed.values().map(|e| e.size_bytes).sum();
+    if !lines.is_empty() {
+        for l in &lines {
+            eprintln!("{l}");
+        }
+        bail!(
+            "{} differs from {} in {} places (listed above)",
+            dir.display(),
+            dir.join(manifest::MANIFEST).display(),
+            lines.len()
+        );
+    }
+    println!(
+        "{} files ({:.1} MB) match the manifest {}; {} checkpoints carry no tensor checksums of their own (written before checksums existed)",
+        listed.len(),
+        total as f64 / 1e6,
+        dir.join(manifest::MANIFEST).display(),
+        unverified
+    );
+    Ok(())
 }
 
 /// An actor-only copy never overwrites the checkpoint it is cut from, nor any
@@ -66,7 +144,9 @@ fn refuse_to_replace_a_run_state(checkpoint: &Path, out: &Path) -> Result<()> {
             out.display()
         );
     }
-    if read_checkpoint(out).is_ok_and(|c| !is_actor_only(&c.metadata)) {
+    let resumes =
+        |m: &std::collections::HashMap<String, String>| !is_actor_only(m) && !is_evaluation_only(m);
+    if read_checkpoint(out).is_ok_and(|c| resumes(&c.metadata)) {
         bail!(
             "--out {} already holds a full checkpoint (it resumes a run); remove it first or write elsewhere",
             out.display()
@@ -81,7 +161,10 @@ fn describe(path: &Path) -> Result<String> {
     let p = load_policy(path)?;
     let bytes = std::fs::metadata(path)?.len();
     let contents = match (p.actor_only, p.exact, verified) {
-        (true, _, _) => "actor only: evaluates, never resumes",
+        (true, _, _) => "actor only: evaluates, never resumes (no trained critic)",
+        _ if p.evaluation_only => {
+            "evaluation only: evaluates and analyses the critic, never resumes (no optimiser or environment state)"
+        }
         (false, true, true) => "full: resumes bit for bit",
         (false, true, false) => {
             "full: resumes, unverified (without checksums nothing shows the state is intact)"

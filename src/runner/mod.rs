@@ -5,6 +5,7 @@ pub mod dist;
 mod faults;
 pub mod identity;
 mod job;
+pub mod manifest;
 pub mod metrics;
 pub mod policy_file;
 mod resume;
