@@ -1,7 +1,8 @@
 //! Shipping runs with the repository: `--ship` copies each run's files and the
 //! checkpoints evaluation needs to the experiment's `shipped_dir` (a finished,
-//! chosen run as actor-only copies), and a fresh clone restores them into
-//! `runs/` (or reads actor-only copies where they are).
+//! chosen run as actor-only copies and its final policy as an evaluation file,
+//! without optimiser state), rewrites the enclosing `MANIFEST`, and a fresh clone
+//! restores unfinished runs into `runs/` (finished ones are read where they are).
 
 use std::path::Path;
 
@@ -12,7 +13,8 @@ use super::spec::{self, ExperimentSpec};
 use super::{kcheck, selection};
 use super::{run_state, run_target};
 use crate::fsio::copy_atomic;
-use crate::runner::policy_file::{is_actor_only, save_actor_only};
+use crate::runner::manifest;
+use crate::runner::policy_file::{is_actor_only, save_actor_only, save_evaluation_only};
 use crate::runner::{RunDir, LATEST};
 
 /// Files of a run that travel with its checkpoint.
@@ -36,7 +38,10 @@ pub(super) fn has_checkpoints(rd: &RunDir) -> bool {
 /// under an old run's name must not ship the old run's `adaptation.csv`.
 pub(super) fn ship_files(run: &Path, dst: &Path) -> Result<()> {
     for f in SHIPPED_FILES {
-        if run.join(f).exists() {
+        if f == selection::SELECTED && run.join(f).exists() {
+            // evaluation reads its actor, critic and normaliser, never its optimiser
+            save_evaluation_only(&run.join(f), &dst.join(f))?;
+        } else if run.join(f).exists() {
             copy_atomic(&run.join(f), &dst.join(f))?;
         } else if dst.join(f).exists() {
             std::fs::remove_file(dst.join(f))
@@ -91,8 +96,8 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
         })?;
         std::fs::create_dir_all(&dst).with_context(|| format!("creating {}", dst.display()))?;
         if loaded.progress.iteration >= state.target && selected_in(spec, r, &state).is_some() {
-            // finished and its final policy chosen: evaluation reads `selected` (whole,
-            // critic included) and the headline checkpoints, never resumes it
+            // finished and its final policy chosen: evaluation reads `selected` (actor,
+            // critic and normaliser) and the headline checkpoints, never resumes it
             save_actor_only(&ckpt, &dst.join(LATEST))?;
         } else {
             copy_atomic(&ckpt, &dst.join(LATEST))?;
@@ -151,6 +156,28 @@ pub fn ship_all(spec: &ExperimentSpec, file: &Path) -> Result<()> {
             p.iteration,
             dst.display()
         );
+    }
+    if let Some(dir) = spec.shipped_dir.as_deref() {
+        refresh_manifest(dir)?;
+    }
+    Ok(())
+}
+
+/// Rewrites the manifest of the folder that holds `shipped` (the nearest
+/// ancestor with a `MANIFEST`), so that what was shipped is listed with its hash.
+fn refresh_manifest(shipped: &Path) -> Result<()> {
+    let mut dir = Some(shipped);
+    while let Some(d) = dir {
+        if d.join(manifest::MANIFEST).exists() {
+            let m = manifest::write(d)?;
+            eprintln!(
+                "rewrote {} ({} files)",
+                d.join(manifest::MANIFEST).display(),
+                m.len()
+            );
+            return Ok(());
+        }
+        dir = d.parent().filter(|p| !p.as_os_str().is_empty());
     }
     Ok(())
 }
