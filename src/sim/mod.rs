@@ -24,3 +24,16 @@ pub fn mujoco_version() -> i32 {
     // SAFETY: no arguments, pure.
     unsafe { ffi::mj_version() }
 }
+
+/// MuJoCo's library version as text ("2.2.2"), read from the linked library.
+pub fn mujoco_version_string() -> String {
+    // SAFETY: no arguments; MuJoCo returns a pointer to a static NUL-terminated string.
+    let text = unsafe { ffi::mj_versionString() };
+    if text.is_null() {
+        return mujoco_version().to_string();
+    }
+    // SAFETY: non-null, NUL-terminated and static (never freed), checked above.
+    unsafe { std::ffi::CStr::from_ptr(text) }
+        .to_string_lossy()
+        .into_owned()
+}
