@@ -36,7 +36,8 @@ pub const DEFAULT_REFERENCE_TOLERANCE: f64 = 1e-4;
 /// Keys each section of a sidecar may hold: those rall reads, and the
 /// descriptions `rall export` writes beside them. The other top-level sections
 /// (`checkpoint`, `onnx`, `network`, `sensing`, `start_state`, `trace`,
-/// `history`, `control_loop`) describe an export; rall reads only `trace`'s rows.
+/// `history`, `control_loop`, `simulator`, `command_envelope`, `safety`)
+/// describe an export; rall reads only `trace`'s rows.
 const SECTION_KEYS: [(&str, &[&str]); 12] = [
     (
         "",
@@ -63,6 +64,9 @@ const SECTION_KEYS: [(&str, &[&str]); 12] = [
             "start_state",
             "trace",
             "history",
+            "simulator",
+            "command_envelope",
+            "safety",
         ],
     ),
     (
