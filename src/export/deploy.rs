@@ -9,7 +9,9 @@ use serde_json::{json, Map, Value};
 
 use crate::config::TrainConfig;
 use crate::env::config::{PushConfig, RandomizationConfig};
+use crate::env::terrain::{Terrain, TerrainKind};
 use crate::env::{build_scene, Env, EnvConfig};
+use crate::eval::ground::RoughParams;
 use crate::learn::Learner;
 use crate::robot::Robot;
 use crate::sim::ObjKind;
@@ -112,6 +114,74 @@ pub fn deployment_sections(config: &TrainConfig, robot: &Robot) -> Result<Map<St
     Ok(m)
 }
 
+/// Seen on one control loop on a heightfield: the share of episodes that fell in
+/// MuJoCo 4.0, and in MuJoCo 2.2.2 (rall's), in percent.
+const HEIGHTFIELD_FALLS_PCT: [f64; 2] = [53.0, 7.0];
+
+/// The simulator section: the MuJoCo version rall links (read from the library
+/// at run time), a note on heightfields across versions, and the generators of
+/// the grounds: the training ground of `config` (`terrain`: the generated
+/// terrain of a rough config) and rall's rough evaluation ground.
+pub fn simulator_json(config: &TrainConfig, terrain: Option<&Terrain>) -> Result<Value> {
+    let version = crate::sim::mujoco_version_string();
+    let [newer, ours] = HEIGHTFIELD_FALLS_PCT;
+    Ok(json!({
+        "engine": "MuJoCo",
+        "mujoco_version": version,
+        "mujoco_version_number": crate::sim::mujoco_version(),
+        "statement": format!("trained and checked (`trace`, `command_envelope`) in MuJoCo {version}, read from the library rall linked when it exported this policy"),
+        "heightfield_note": format!("heightfield contacts differ between MuJoCo versions: one control loop on a heightfield fell in {newer:.0}% of episodes in MuJoCo 4.0 where MuJoCo 2.2.2 fell in {ours:.0}%. Sim-to-sim checks on rough ground should use MuJoCo {version}; the flat-ground trace (a plane) is replayed in a newer pip MuJoCo by tests/check_trace.py"),
+        "training_ground": training_ground_json(config, terrain)?,
+        "rough_ground": rough_ground_json(),
+        "heightfield_layout": "MuJoCo hfield: heights in metres on a grid of samples horizontal_scale_m apart, row r along y and column c along x, data[r * ncol + c] at x = -size[0] + c * horizontal_scale_m, y = -size[1] + r * horizontal_scale_m from the geom's position; the geom sits at the grid centre with z = the lowest height, size = (half extent x, half extent y, highest - lowest, base depth); rall uploads (z - lowest) / (highest - lowest)",
+    }))
+}
+
+/// The ground `config` was trained on: a plane, or the tiled heightfield with
+/// its generator, resolution, quantum and seed convention.
+fn training_ground_json(config: &TrainConfig, terrain: Option<&Terrain>) -> Result<Value> {
+    let t = &config.env.terrain;
+    let Some(terrain) = terrain.filter(|_| t.kind == TerrainKind::Rough) else {
+        return Ok(json!({
+            "kind": "flat",
+            "generator": "none: a plane",
+            "ground_xml": FLAT_GROUND_XML,
+        }));
+    };
+    let scene = terrain.scene_xml("</mujoco>").map_err(anyhow::Error::msg)?;
+    let (nx, ny) = terrain.grid_shape();
+    Ok(json!({
+        "kind": "rough",
+        "generator": "rall's tiled terrain (src/env/terrain.rs, Terrain::generate): legged_gym's terrain curriculum in kind, not its code; tiles of tile_length_m x tile_width_m, rows = difficulty levels along x, columns = tile types along y (proportions), a flat border around them",
+        "noise": "rough slope tiles: a pyramid of slope 0.4 d plus uniform noise, each point of a lattice about 0.2 m apart an integer k uniform in [-K, K] (K = round(amplitude / vertical_scale_m), amplitude 0.025 + 0.075 d m) times vertical_scale_m, bilinear between lattice points, none on the central platform; d = level / num_levels. The other tile types (smooth slopes, stairs, discrete blocks, flat) are as the module documentation of src/env/terrain.rs says",
+        "horizontal_scale_m": t.horizontal_scale_m,
+        "vertical_scale_m": t.vertical_scale_m,
+        "quantisation": "every height rounded to a multiple of vertical_scale_m",
+        "grid_samples_x_y": [nx, ny],
+        "grid_origin_m": terrain.grid_origin_m(),
+        "seed": terrain.seed(),
+        "seed_convention": "seed = the run's runner.seed; tile (level i, type j) draws from rand_chacha 0.3's ChaCha8Rng::seed_from_u64(seed) with set_stream(i * num_types + j), through rand 0.8's gen_range",
+        "config": serde_json::to_value(t)?,
+        "ground_xml": scene.trim_end_matches("</mujoco>"),
+    }))
+}
+
+/// rall's rough evaluation ground (`rough` scenarios, severity rungs).
+fn rough_ground_json() -> Value {
+    let p = RoughParams::default();
+    json!({
+        "generator": "rall's random rough ground (src/eval/ground.rs, Ground::rough): legged_gym's random_uniform_terrain in kind; the ground of `rall eval` scenarios with `rough` and of every severity rung",
+        "noise": "uniform on a lattice: lattice points evenly spaced over the field, round(2 half_extent_m / lattice_m) + 1 per axis, each an integer k uniform in [-K, K] (K = round(amplitude_m / vertical_scale_m)) times vertical_scale_m; samples bilinear between lattice points, then rounded to vertical_scale_m; samples with |x| and |y| <= spawn_pad_m stay at 0",
+        "horizontal_scale_m": p.horizontal_scale_m,
+        "vertical_scale_m": p.vertical_scale_m,
+        "params": p,
+        "half_extent_rule": "half_extent_m = max(5, min(params.half_extent_m, hypot(max |vx|, max |vy| of commands) * episode_length_s + 3)), the field centred on the spawn point at the origin",
+        "amplitude_rule": "params.amplitude_m by default; a severity rung sets it (rough_amplitude_m of experiments/severity-ladder.toml)",
+        "seed_convention": "seed = the evaluation's --seed; the lattice draws x fastest then y, from rand_chacha 0.3's ChaCha8Rng::seed_from_u64(seed) through rand 0.8's gen_range",
+        "mujoco": "an hfield geom named `ground` (a 0.5 m base, at least 0.001 m of elevation) with a plane 0.05 m under its lowest point as a safety net; friction 1.0 0.005 0.0001, condim 3",
+    })
+}
+
 /// The trace's env: flat ground, the fixed command, no noise, no randomisation.
 pub fn nominal_env(training: &EnvConfig) -> EnvConfig {
     let mut cfg = crate::eval::tracking::tracking_env(training);
@@ -147,6 +217,9 @@ pub struct Trace {
     pub base_lin_vel_body_mps: Vec<[f64; 3]>,
     pub base_pos_m: Vec<[f64; 3]>,
     pub joint_pos_rad: Vec<Vec<f64>>,
+    /// The policy step whose physics ended the episode (a fall), when one did;
+    /// the rows stop before it.
+    pub fell_at_step: Option<usize>,
 }
 
 /// `steps` policy steps of `learner`'s mean from the start state in [`nominal_env`].
@@ -172,7 +245,7 @@ pub fn nominal_trace(learner: &Learner, training: &EnvConfig, steps: usize) -> R
             t.obs.pop();
             t.actions.pop();
             t.targets_rad.pop();
-            eprintln!("note: the nominal trace stops at step {step}: the policy fell walking at {TRACE_COMMAND:?} on flat ground");
+            t.fell_at_step = Some(step);
             break;
         }
         let s = env.state();

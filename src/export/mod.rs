@@ -11,8 +11,14 @@
 //! (input `obs`), and RMA's student (inputs `obs` and `history`, the adaptation
 //! module and the base policy in one graph). An RMA teacher is refused: it reads
 //! privileged values a robot cannot measure.
+//!
+//! Safety ([`export_checked`], what `rall export` runs): the exported network's
+//! command map goes into the sidecar as its safe envelope ([`envelope`]), and a
+//! policy whose nominal trace falls or whose map fails inside its declared
+//! command ranges is refused before anything is written, unless allowed.
 
 pub mod deploy;
+pub mod envelope;
 pub mod onnx;
 
 use std::path::{Path, PathBuf};
@@ -23,11 +29,14 @@ use serde_json::{json, Value};
 
 use crate::config::TrainConfig;
 use crate::env::observation::OBS_LAYOUT;
-use crate::env::{build_scene, Env, EnvConfig, ACT_DIM, OBS_DIM};
+use crate::env::{build_scene, Env, EnvConfig, Scene, ACT_DIM, OBS_DIM};
+use crate::eval::rall_graph::RallGraph;
+use crate::eval::Actor;
 use crate::learn::normalizer::STD_EPS;
 use crate::learn::Learner;
 use crate::robot::Robot;
 use crate::runner::{load_policy, Progress};
+use envelope::{Envelope, EnvelopeOptions};
 use onnx::{Dense, Dim};
 
 /// Version of the sidecar's JSON layout.
@@ -70,6 +79,8 @@ pub struct ExportReport {
     pub config_hash: String,
     pub onnx_bytes: usize,
     pub reference_count: usize,
+    /// The command envelope of a checked export ([`export_checked`]).
+    pub envelope: Option<EnvelopeReport>,
 }
 
 /// The learner's empirical observation normaliser (`learner.obs_normalization`),
@@ -542,17 +553,11 @@ fn reference_pairs(
     Ok(out)
 }
 
-/// Writes `onnx_path` and its sidecar (`.json` beside it) for the checkpoint at `checkpoint`.
+/// Writes `onnx_path` and its sidecar (`.json` beside it) for the checkpoint at
+/// `checkpoint`, without the safety checks of [`export_checked`] (the sidecar's
+/// `safety.checked` says so; it has no `command_envelope`).
 pub fn export(checkpoint: &Path, onnx_path: &Path, opts: &ExportOptions) -> Result<ExportReport> {
-    ensure!(
-        onnx_path.extension().is_some_and(|e| e == "onnx"),
-        "--onnx {}: the output must end in .onnx (the sidecar goes beside it as .json)",
-        onnx_path.display()
-    );
-    ensure!(
-        opts.reference_count > 0,
-        "at least one reference observation is needed"
-    );
+    check_export_paths(onnx_path, opts)?;
     let loaded = load_policy(checkpoint)?;
     export_learner(
         &loaded.learner,
@@ -564,6 +569,42 @@ pub fn export(checkpoint: &Path, onnx_path: &Path, opts: &ExportOptions) -> Resu
     )
 }
 
+/// What `rall export` does: [`export`] after mapping the exported network's
+/// command envelope; refuses an unsafe policy (writing nothing) unless
+/// `safety.allow_unsafe`.
+pub fn export_checked(
+    checkpoint: &Path,
+    onnx_path: &Path,
+    opts: &ExportOptions,
+    safety: &SafetyCheck,
+) -> Result<ExportReport> {
+    check_export_paths(onnx_path, opts)?;
+    let loaded = load_policy(checkpoint)?;
+    export_learner_checked(
+        &loaded.learner,
+        &loaded.config,
+        &loaded.progress,
+        checkpoint,
+        onnx_path,
+        opts,
+        safety,
+    )
+}
+
+/// The output must be an `.onnx` path and at least one reference pair asked for.
+fn check_export_paths(onnx_path: &Path, opts: &ExportOptions) -> Result<()> {
+    ensure!(
+        onnx_path.extension().is_some_and(|e| e == "onnx"),
+        "--onnx {}: the output must end in .onnx (the sidecar goes beside it as .json)",
+        onnx_path.display()
+    );
+    ensure!(
+        opts.reference_count > 0,
+        "at least one reference observation is needed"
+    );
+    Ok(())
+}
+
 /// [`export`] from an already loaded learner.
 pub fn export_learner(
     learner: &Learner,
@@ -573,6 +614,162 @@ pub fn export_learner(
     onnx_path: &Path,
     opts: &ExportOptions,
 ) -> Result<ExportReport> {
+    let mut built = build_export(learner, config, progress, checkpoint, onnx_path, opts)?;
+    if let Some(step) = built.trace_fell_at_step {
+        eprintln!("note: the nominal trace stops at step {step}: the policy fell walking at {:?} on flat ground", deploy::TRACE_COMMAND);
+    }
+    built.sidecar["safety"] = envelope::unchecked_json(built.trace_fell_at_step);
+    built.write(None)
+}
+
+/// [`export_checked`] from an already loaded learner.
+pub fn export_learner_checked(
+    learner: &Learner,
+    config: &TrainConfig,
+    progress: &Progress,
+    checkpoint: &Path,
+    onnx_path: &Path,
+    opts: &ExportOptions,
+    safety: &SafetyCheck,
+) -> Result<ExportReport> {
+    safety.envelope.validate(&config.env.commands)?;
+    let mut built = build_export(learner, config, progress, checkpoint, onnx_path, opts)?;
+    let fell = built.trace_fell_at_step;
+    if let (Some(step), false) = (fell, safety.allow_unsafe) {
+        return Err(envelope::trace_refusal(checkpoint, step));
+    }
+    let graph = match &built.net {
+        PolicyNet::GaussianMean { .. } => Some(ExportedGraph::read(&built.bytes, config)?),
+        PolicyNet::Student { .. } => None,
+    };
+    let (actor, network): (&(dyn Actor + Sync), &str) = match &graph {
+        Some(g) => (g, "the exported ONNX graph, read back from its bytes and run by rall's actor forward (the actions any runtime reproduces to reference.tolerance_abs)"),
+        None => (learner, "the checkpoint's actor: an RMA student's two-input graph computes the same actions (reference); rall runs it in its checkpoint form"),
+    };
+    eprintln!(
+        "mapping the command envelope: {} robots per cell, flat ground, seed {} ...",
+        safety.envelope.robots, safety.envelope.seed
+    );
+    let measured = Envelope::measure(actor, &config.env, &safety.envelope, network)?;
+    eprintln!(
+        "{}\n\n{}",
+        measured.map.summary(&measured.threshold),
+        measured.map.table(&measured.threshold)
+    );
+    let verdict = envelope::judge(checkpoint, fell, &measured, safety.allow_unsafe)?;
+    built.sidecar["command_envelope"] = measured.json(checkpoint);
+    built.sidecar["safety"] = verdict;
+    built.write(Some(EnvelopeReport::of(
+        &measured,
+        fell,
+        safety.allow_unsafe,
+    )))
+}
+
+/// How `rall export` checks a policy before writing it.
+#[derive(Debug, Clone, Default)]
+pub struct SafetyCheck {
+    pub envelope: EnvelopeOptions,
+    /// Write an unsafe policy anyway (its sidecar says so).
+    pub allow_unsafe: bool,
+}
+
+/// What a checked export found.
+#[derive(Debug, Clone)]
+pub struct EnvelopeReport {
+    pub cells: usize,
+    pub safe_cells: usize,
+    /// Failing cells inside the declared command ranges.
+    pub declared_failures: usize,
+    pub trace_fell_at_step: Option<usize>,
+    /// An unsafe policy written because `--allow-unsafe` was given.
+    pub allowed_unsafe: bool,
+}
+
+impl EnvelopeReport {
+    fn of(env: &Envelope, fell: Option<usize>, allow_unsafe: bool) -> EnvelopeReport {
+        let t = &env.threshold;
+        let declared_failures = env.declared_failures().len();
+        EnvelopeReport {
+            cells: env.map.cells.len(),
+            safe_cells: env.map.safe_cells(t).len(),
+            declared_failures,
+            trace_fell_at_step: fell,
+            allowed_unsafe: allow_unsafe && (fell.is_some() || declared_failures > 0),
+        }
+    }
+}
+
+/// The exported graph as an actor: rall's reading of the ONNX bytes just
+/// encoded, run by rall's actor forward.
+struct ExportedGraph(RallGraph);
+
+impl ExportedGraph {
+    /// Reads `bytes` back; refuses a graph rall cannot read or whose input is not
+    /// the env's observation row.
+    fn read(bytes: &[u8], config: &TrainConfig) -> Result<ExportedGraph> {
+        let g = RallGraph::recognise(bytes)
+            .context("the exported graph does not read back as rall's export form")?;
+        let width = config.env.obs_layout().width();
+        ensure!(
+            g.input_width() == width,
+            "the exported graph takes {} inputs, the observation row has {width}",
+            g.input_width()
+        );
+        Ok(ExportedGraph(g))
+    }
+}
+
+impl Actor for ExportedGraph {
+    fn actions(&self, obs: &[f32]) -> Result<Vec<f32>> {
+        let w = self.0.input_width();
+        ensure!(
+            obs.len().is_multiple_of(w),
+            "observation rows of {w} expected, got {} values",
+            obs.len()
+        );
+        Ok(self.0.actions(obs, obs.len() / w))
+    }
+}
+
+/// An export built in memory, not yet written.
+struct BuiltExport {
+    net: PolicyNet,
+    sidecar: Value,
+    bytes: Vec<u8>,
+    onnx_path: PathBuf,
+    iteration: usize,
+    config_hash: String,
+    reference_count: usize,
+    /// Where the nominal trace fell (None: it did not, or a student has none).
+    trace_fell_at_step: Option<usize>,
+}
+
+impl BuiltExport {
+    /// Writes the ONNX file and its sidecar.
+    fn write(self, envelope: Option<EnvelopeReport>) -> Result<ExportReport> {
+        let side = write_export_files(&self.onnx_path, &self.bytes, &self.sidecar)?;
+        Ok(ExportReport {
+            onnx_path: self.onnx_path,
+            sidecar_path: side,
+            iteration: self.iteration,
+            config_hash: self.config_hash,
+            onnx_bytes: self.bytes.len(),
+            reference_count: self.reference_count,
+            envelope,
+        })
+    }
+}
+
+/// The graph and sidecar of `learner`, with its nominal trace, in memory.
+fn build_export(
+    learner: &Learner,
+    config: &TrainConfig,
+    progress: &Progress,
+    checkpoint: &Path,
+    onnx_path: &Path,
+    opts: &ExportOptions,
+) -> Result<BuiltExport> {
     let env = &config.env;
     let groups = env.obs_layout();
     let student = learner.latent_source() == crate::learn::LatentSource::Adaptation;
@@ -599,18 +796,18 @@ pub fn export_learner(
     if let PolicyNet::Student { history_steps, .. } = &net {
         add_history_json(&mut sidecar, *history_steps, &reference.history);
     }
-    add_deployment(&mut sidecar, learner, config, &robot, student)?;
+    let fell = add_deployment(&mut sidecar, learner, config, (&robot, &scene), student)?;
     let metadata = onnx_metadata(onnx_path, progress, &config_hash);
     let model = onnx::model(net.graph(), model_doc(student), &metadata);
-    let bytes = onnx::encode(&model);
-    let side = write_export_files(onnx_path, &bytes, &sidecar)?;
-    Ok(ExportReport {
+    Ok(BuiltExport {
+        bytes: onnx::encode(&model),
+        net,
+        sidecar,
         onnx_path: onnx_path.to_path_buf(),
-        sidecar_path: side,
         iteration: progress.iteration,
         config_hash,
-        onnx_bytes: bytes.len(),
         reference_count: reference.rows.len() / groups.width(),
+        trace_fell_at_step: fell,
     })
 }
 
@@ -850,23 +1047,29 @@ fn write_export_files(onnx_path: &Path, bytes: &[u8], sidecar: &Value) -> Result
     Ok(side)
 }
 
-/// The deployment sections and, for a policy reading `obs` alone, the nominal trace.
+/// The deployment sections, the simulator statement and, for a policy reading
+/// `obs` alone, the nominal trace; returns the policy step where the trace fell.
 fn add_deployment(
     sidecar: &mut Value,
     learner: &Learner,
     config: &TrainConfig,
-    robot: &Robot,
+    (robot, scene): (&Robot, &Scene),
     student: bool,
-) -> Result<()> {
+) -> Result<Option<usize>> {
     let map = sidecar
         .as_object_mut()
         .context("the sidecar is a JSON object")?;
     map.extend(deploy::deployment_sections(config, robot)?);
-    if !student {
-        let t = deploy::nominal_trace(learner, &config.env, deploy::TRACE_STEPS)?;
-        map.insert("trace".into(), deploy::trace_json(&t, &config.env.control));
+    map.insert(
+        "simulator".into(),
+        deploy::simulator_json(config, scene.terrain.as_deref())?,
+    );
+    if student {
+        return Ok(None);
     }
-    Ok(())
+    let t = deploy::nominal_trace(learner, &config.env, deploy::TRACE_STEPS)?;
+    map.insert("trace".into(), deploy::trace_json(&t, &config.env.control));
+    Ok(t.fell_at_step)
 }
 
 fn dims_json(dims: &[Dim]) -> Vec<Value> {
