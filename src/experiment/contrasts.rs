@@ -103,13 +103,31 @@ pub struct Contrast {
 /// The level of every contrast's seed-level interval (95%), its test's alpha 0.05.
 pub const CONTRAST_LEVEL: f64 = 0.95;
 
+/// +1 for a metric on which higher is more robust (every benchmark's but one),
+/// -1 for the command map's worst-cell fall rate, on which lower is safer: a
+/// method is ahead on it with a negative difference.
+pub fn safer_sign(metric: &str) -> f64 {
+    if metric == super::commands::WORST_CELL_FALLS {
+        -1.0
+    } else {
+        1.0
+    }
+}
+
 impl Contrast {
-    /// Seed pairs (one of each method) in which the first method is ahead, and all pairs.
+    /// Seed pairs (one of each method) in which the first method is ahead (safer
+    /// by [`safer_sign`]), and all pairs.
     pub fn pairs_ahead(&self) -> (usize, usize) {
+        let sign = safer_sign(&self.metric);
         let ahead = self
             .first_seeds
             .iter()
-            .map(|a| self.second_seeds.iter().filter(|&&b| *a > b).count())
+            .map(|a| {
+                self.second_seeds
+                    .iter()
+                    .filter(|&&b| sign * *a > sign * b)
+                    .count()
+            })
             .sum();
         (ahead, self.first_seeds.len() * self.second_seeds.len())
     }
@@ -124,12 +142,13 @@ impl Contrast {
         permutation_p(&self.first_seeds, &self.second_seeds)
     }
 
-    /// `ahead`, `behind` (Welch's interval over seeds excludes 0) or `level` (also
-    /// with too few seeds to test).
+    /// `ahead`, `behind` (Welch's interval over seeds excludes 0, the first safer
+    /// or less safe by [`safer_sign`]) or `level` (also with too few seeds to test).
     pub fn verdict(&self) -> &'static str {
+        let sign = safer_sign(&self.metric);
         self.welch()
             .map_or(Verdict::Level, |w| {
-                Verdict::from_p(w.difference, w.p, 1.0 - CONTRAST_LEVEL)
+                Verdict::from_p(sign * w.difference, w.p, 1.0 - CONTRAST_LEVEL)
             })
             .as_str()
     }
@@ -323,11 +342,13 @@ pub fn contrasts_csv(rows: &[Contrast]) -> String {
 }
 
 /// The metrics in the order the results show them: (metric, title, decimals).
-const METRICS: [(&str, &str, usize); 4] = [
+const METRICS: [(&str, &str, usize); 6] = [
     ("ttf", "TTF", 3),
     ("strict_ttf", "strict TTF", 3),
     ("success_pct", "platform success (points)", 1),
     ("return_q25", "race return q0.25", 1),
+    ("safe_share", "command map: safe share", 3),
+    ("worst_cell_falls", "command map: worst cell's fall rate", 3),
 ];
 
 /// `rungs 0, 2` / `rung 3` / `none`.
@@ -358,6 +379,12 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
     }
     let _ = writeln!(s, "## Method against method (exploratory)\n");
     let _ = writeln!(s, "Each pair's difference, first minus second (higher is more robust on every benchmark), on every rung, over every seed. The verdict is Welch's t-test on the seeds' own numbers (the seed is the unit; 95% interval, p, and the exact permutation test over seed labels beside it): a method is called ahead or behind on a rung only when Welch's interval excludes 0. These contrasts are exploratory: none is adjusted for the others, so about one in twenty true nulls is called by chance. The interval over robots (each seed's robots resampled within their cells) describes these trained policies, never the methods.\n");
+    if rows
+        .iter()
+        .any(|c| c.benchmark == super::commands::BENCHMARK)
+    {
+        let _ = writeln!(s, "The command map has no rung (its rows are rung 0 in `contrasts.csv`). Its worst cell's fall rate is the one metric on which lower is safer: there a method is ahead with a negative difference, and a seed pair counts as ahead when the first seed's worst cell falls less.\n");
+    }
     for &(a, b) in &pairs {
         let these: Vec<&Contrast> = rows
             .iter()
@@ -375,6 +402,10 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
                     .map(|c| c.severity)
                     .collect()
             };
+            if of[0].benchmark == super::commands::BENCHMARK {
+                let _ = writeln!(s, "- {title}: {}.", of[0].verdict());
+                continue;
+            }
             let _ = writeln!(
                 s,
                 "- {title}: ahead on {}, behind on {}, level on {}.",
@@ -405,10 +436,14 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
                     )
                 });
                 let perm = c.permutation_p().map_or("-".into(), |p| format!("{p:.3}"));
+                let rung = if c.benchmark == super::commands::BENCHMARK {
+                    "-".to_string()
+                } else {
+                    c.severity.to_string()
+                };
                 let _ = writeln!(
                     s,
-                    "| {title} | {} | {:+.d$} [{:+.d$}, {:+.d$}] | {interval} | {p} / {perm} | {} | {} | {ahead} / {n} |",
-                    c.severity,
+                    "| {title} | {rung} | {:+.d$} [{:+.d$}, {:+.d$}] | {interval} | {p} / {perm} | {} | {} | {ahead} / {n} |",
                     c.over_robots.value,
                     c.over_robots.lo,
                     c.over_robots.hi,

@@ -7,6 +7,8 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 
 use super::clock::PhaseClock;
+use super::commands::{evaluate_commands, CommandsResult};
+use super::contrasts::Contrast;
 use super::final_policy::{
     choose_final_policies, load_final_policy, load_run, load_runs, newest_checkpoint,
     warn_unchosen_teachers,
@@ -21,7 +23,8 @@ use crate::eval::cache::run_jobs_cached;
 use crate::eval::race::evaluate_race_cached;
 use crate::eval::{
     evaluate_tracking, tracking_env, with_randomization, ActionMode, GroundKind, Load, MetaConfig,
-    NamedPolicy, PlatformOptions, RaceOptions, RolloutCache, ScenarioParams, TtfOptions,
+    NamedPolicy, PlatformOptions, RaceOptions, RaceReport, RolloutCache, ScenarioParams,
+    TtfOptions,
 };
 
 pub(super) fn seeds(first: u64, n: usize) -> Vec<u64> {
@@ -278,7 +281,10 @@ fn rollout_cache(spec: &ExperimentSpec, opts: &ExperimentOptions) -> RolloutCach
 /// Runs every evaluation of the experiment on the runs' latest checkpoints.
 pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<ExperimentResults> {
     let threads = crate::config::worker_threads(spec.threads);
-    let stages = 5 + spec.curves.is_some() as usize + spec.critic_tail.is_some() as usize;
+    let stages = 5
+        + spec.curves.is_some() as usize
+        + spec.critic_tail.is_some() as usize
+        + spec.commands.is_some() as usize;
     let mut clock = PhaseClock::new(stages);
     let runs = runs_to_evaluate(spec, opts)?;
     let available = runs_with_checkpoints(spec, &runs)?;
@@ -340,23 +346,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     clock.next("race track");
     let race_labels = race_runs(have(&spec.race.methods), &metas);
     let race_opts = race_options(spec, threads);
-    let race = if race_labels.is_empty() {
-        None
-    } else {
-        let policies = load_runs(spec, &race_labels)?;
-        Some(evaluate_race_cached(
-            &policies,
-            &metas,
-            &race_opts,
-            &cache,
-            |r| {
-                eprintln!(
-                    "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
-                    r.name, r.q25, r.q50, r.q75
-                )
-            },
-        )?)
-    };
+    let race = run_race(spec, &race_labels, &metas, &race_opts, &cache)?;
     let reports = ladder::RungReports {
         ttf: ttf.as_ref(),
         platform: platform.as_ref(),
@@ -369,7 +359,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         metas: &metas,
         cache: &cache,
     };
-    let (curves, contrasts) = match &spec.curves {
+    let (curves, mut contrasts) = match &spec.curves {
         Some(c) => {
             clock.next("robustness curves over the severity ladder");
             ladder::evaluate_curves(spec, c, &reports, &tables, &mut clock)?
@@ -379,15 +369,8 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
             ladder::rung_contrasts(spec, 0, &reports, &tables),
         ),
     };
-    let critic_tail = match &spec.critic_tail {
-        Some(s) => {
-            clock.next("the critics before falls");
-            Some(critic_tail::evaluate_critic_tail(
-                spec, s, &available, threads, &cache,
-            )?)
-        }
-        None => None,
-    };
+    let critic_tail = critics_before_falls(spec, &available, threads, &cache, &mut clock)?;
+    let commands = command_maps(spec, &available, threads, &cache, &mut clock)?;
     let (whole, phases) = clock.finish();
     let cache_use = cache.usage();
     if let Some(dir) = cache.dir() {
@@ -398,13 +381,83 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     results.phases = phases;
     results.rollouts = cache.dir().map(|_| cache_use);
     results.set_curves(spec, curves)?;
+    if let Some((maps, more)) = commands {
+        contrasts.extend(more);
+        results.commands = Some(maps);
+    }
     results.verdicts = super::verdicts::VerdictsResult::of(spec, &contrasts);
     results.contrasts = contrasts;
+    finish_results(spec, &mut results, critic_tail, spread)?;
+    Ok(results)
+}
+
+/// The race of runs `labels` and meta controllers `metas` (none without runs).
+fn run_race(
+    spec: &ExperimentSpec,
+    labels: &[String],
+    metas: &[MetaConfig],
+    opts: &RaceOptions,
+    cache: &RolloutCache,
+) -> Result<Option<RaceReport>> {
+    if labels.is_empty() {
+        return Ok(None);
+    }
+    let policies = load_runs(spec, labels)?;
+    let report = evaluate_race_cached(&policies, metas, opts, cache, |r| {
+        eprintln!(
+            "  {:<14} returns q0.25 {:.3} q0.5 {:.3} q0.75 {:.3}",
+            r.name, r.q25, r.q50, r.q75
+        )
+    })?;
+    Ok(Some(report))
+}
+
+/// The stage of `[critic_tail]` (none without it).
+fn critics_before_falls(
+    spec: &ExperimentSpec,
+    available: &[String],
+    threads: usize,
+    cache: &RolloutCache,
+    clock: &mut PhaseClock,
+) -> Result<Option<critic_tail::CriticTail>> {
+    let Some(s) = &spec.critic_tail else {
+        return Ok(None);
+    };
+    clock.next("the critics before falls");
+    Ok(Some(critic_tail::evaluate_critic_tail(
+        spec, s, available, threads, cache,
+    )?))
+}
+
+/// The stage of `[commands]` (none without it): every listed run's command map,
+/// and the contrasts of `[contrasts]`' pairs on it.
+fn command_maps(
+    spec: &ExperimentSpec,
+    available: &[String],
+    threads: usize,
+    cache: &RolloutCache,
+    clock: &mut PhaseClock,
+) -> Result<Option<(CommandsResult, Vec<Contrast>)>> {
+    let Some(c) = &spec.commands else {
+        return Ok(None);
+    };
+    clock.next("command-space maps");
+    Ok(Some(evaluate_commands(spec, c, available, threads, cache)?))
+}
+
+/// The results' parts that need no rollout: the critics' table, the checkpoint
+/// spread, the preface and the risk signal.
+fn finish_results(
+    spec: &ExperimentSpec,
+    results: &mut ExperimentResults,
+    critic_tail: Option<critic_tail::CriticTail>,
+    spread: Vec<kcheck::CheckpointSpread>,
+) -> Result<()> {
     results.critic_tail = critic_tail;
     results.preface = spec.preface_text()?;
     results.checkpoint_spread = spread;
     if let Some(rs) = &spec.risk_signal {
         results.risk_signal = risk_signal::risk_rows(spec, rs)?;
     }
-    Ok(results)
+    Ok(())
 }

@@ -1,10 +1,14 @@
 //! `rall experiment FILE`: the paper's campaign from one file. Trains what is
 //! missing, resumes what is unfinished, skips what is done; then evaluates every
 //! policy with the paper's protocol (tracking, table I TTF, table II platform
-//! drops, race track with the IQR meta controller) and writes tables beside the
-//! paper's numbers, CSV/JSON with every cell, bootstrap intervals and figures.
+//! drops, race track with the IQR meta controller; with `[commands]`, each run's
+//! command-space safety map) and writes tables beside the paper's numbers,
+//! CSV/JSON with every cell, bootstrap intervals and figures.
 
 mod clock;
+pub mod command_plots;
+pub mod commands;
+mod commands_report;
 pub mod contrasts;
 pub mod critic_tail;
 pub mod curve_plots;

@@ -375,7 +375,7 @@ pub(super) fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
 }
 
 /// One figure of an experiment's results.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum Figure {
     /// A robustness curve: an entry of [`CURVE_FIGURES`].
     Curve(&'static CurveFigure),
@@ -383,6 +383,8 @@ pub enum Figure {
     Platform,
     Race,
     RaceIqr,
+    /// A method's command map: its index in the command maps' methods, and its file.
+    Commands(usize, String),
 }
 
 impl Figure {
@@ -393,6 +395,7 @@ impl Figure {
             Figure::Platform => "platform.svg".into(),
             Figure::Race => "race.svg".into(),
             Figure::RaceIqr => "race_iqr.svg".into(),
+            Figure::Commands(_, file) => file.clone(),
         }
     }
 
@@ -404,6 +407,7 @@ impl Figure {
             Figure::Platform => "platform success per height and method, seeds pooled, a dot per seed (table II)",
             Figure::Race => "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller",
             Figure::RaceIqr => "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)",
+            Figure::Commands(..) => "a method's command map: fall rate per command (vx across, yaw rate up, a panel per vy), mean over its seeds, with the seeds in which each cell is safe",
         }
     }
 
@@ -414,13 +418,18 @@ impl Figure {
             Figure::Platform => platform_figure(r, path),
             Figure::Race => race_figure(r, path),
             Figure::RaceIqr => race_iqr_figure(r, path),
+            Figure::Commands(k, _) => match &r.commands {
+                Some(c) => super::command_plots::commands_figure(c, &c.methods[*k], path),
+                None => Ok(()),
+            },
         }
     }
 }
 
 /// The figures of `r`, in the order the README lists them: the robustness
 /// curves first (one per benchmark with points), then the rung-0 tables'
-/// figures; the IQR figure only when the experiment has a meta controller.
+/// figures; the IQR figure only when the experiment has a meta controller; last
+/// each method's command map (`[commands]`).
 /// The one list both [`write_all`] and the README read.
 pub fn figures(r: &ExperimentResults) -> Vec<Figure> {
     let curves = CURVE_FIGURES
@@ -428,9 +437,16 @@ pub fn figures(r: &ExperimentResults) -> Vec<Figure> {
         .filter(|c| r.curves.iter().any(|p| p.metric == c.1))
         .map(Figure::Curve);
     let meta = (!r.meta.is_empty()).then_some(Figure::RaceIqr);
+    let commands = r.commands.iter().flat_map(|c| {
+        c.methods
+            .iter()
+            .enumerate()
+            .map(|(k, m)| Figure::Commands(k, m.figure.clone()))
+    });
     curves
         .chain([Figure::Ttf, Figure::Platform, Figure::Race])
         .chain(meta)
+        .chain(commands)
         .collect()
 }
 

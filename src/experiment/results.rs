@@ -181,6 +181,9 @@ pub struct ExperimentResults {
     /// With `[critic_tail]`: each run's critic before falls and elsewhere.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub critic_tail: Option<super::critic_tail::CriticTail>,
+    /// With `[commands]`: each listed run's command-space map, and each method's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub commands: Option<super::commands::CommandsResult>,
     /// With `[contrasts]`: each pair of methods on every benchmark and rung.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub contrasts: Vec<Contrast>,
@@ -250,6 +253,7 @@ impl ExperimentResults {
             checkpoint_spread: Vec::new(),
             risk_signal: Vec::new(),
             critic_tail: None,
+            commands: None,
             contrasts: Vec::new(),
             verdicts: None,
             preface: None,

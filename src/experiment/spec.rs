@@ -52,6 +52,9 @@ pub struct ExperimentSpec {
     /// What each run's critic says before its robots fall (`[critic_tail]`); absent: not reported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub critic_tail: Option<super::critic_tail::CriticTailSpec>,
+    /// Command-space safety maps of the listed runs (`[commands]`); absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub commands: Option<super::commands::CommandsSpec>,
     /// Pairs of methods compared rung by rung (`[contrasts]`); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrasts: Option<super::contrasts::ContrastsSpec>,
@@ -425,6 +428,9 @@ impl ExperimentSpec {
         }
         if let Some(sel) = &self.selection {
             sel.validate(self.tracking.seed)?;
+        }
+        if let Some(c) = &self.commands {
+            c.validate(self)?;
         }
         if let Some(v) = &self.verdicts {
             v.validate(self)?;

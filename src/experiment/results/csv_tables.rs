@@ -26,6 +26,10 @@ impl ExperimentResults {
         if !self.contrasts.is_empty() {
             files.push(("contrasts.csv", contrasts_csv(&self.contrasts)));
         }
+        if let Some(c) = &self.commands {
+            files.push(("commands.csv", c.cells_csv()));
+            files.push(("commands_by_method.csv", c.methods_csv()));
+        }
         if let Some(v) = &self.verdicts {
             files.push((
                 "verdicts.csv",
