@@ -12,15 +12,16 @@ use std::fmt::Write as _;
 use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 
-use super::contrasts::Contrast;
+use super::contrasts::{safer_sign, Contrast};
 use super::pooled::methods_of;
 use super::spec::ExperimentSpec;
 use crate::stats::mean;
 use crate::stats::seed_test::{holm, permutation_p, pooled_sd, seeds_for_power, welch, Verdict};
 
 /// The metrics a verdict can name: (metric, benchmark, title, decimals, seconds per
-/// unit: TTF is a share of the 20 s episode).
-const METRICS: [(&str, &str, &str, usize, Option<f64>); 4] = [
+/// unit: TTF is a share of the 20 s episode). The command map's two (`[commands]`)
+/// have no rung.
+const METRICS: [(&str, &str, &str, usize, Option<f64>); 6] = [
     ("ttf", "ttf", "TTF", 3, Some(20.0)),
     ("strict_ttf", "ttf", "strict TTF", 3, Some(20.0)),
     (
@@ -31,7 +32,22 @@ const METRICS: [(&str, &str, &str, usize, Option<f64>); 4] = [
         None,
     ),
     ("return_q25", "race", "race return q0.25", 1, None),
+    ("safe_share", "commands", "command map safe share", 3, None),
+    (
+        "worst_cell_falls",
+        "commands",
+        "command map worst cell's fall rate",
+        3,
+        None,
+    ),
 ];
+
+/// Whether `metric` is one of the command map's (no rung).
+fn is_command_metric(metric: &str) -> bool {
+    METRICS
+        .iter()
+        .any(|m| m.0 == metric && m.1 == super::commands::BENCHMARK)
+}
 
 /// `[verdicts]`: the pre-registered primary result and the families of secondary
 /// contrasts, tested on the confirmatory seeds.
@@ -68,14 +84,16 @@ pub struct Family {
 
 /// One contrast: `first` minus `second` (run labels of the two methods, as in
 /// `[contrasts].pairs`) on `metric` at `rung` (a rung of the ladder, or `"mean"`:
-/// each seed's mean over every evaluated rung).
+/// each seed's mean over every evaluated rung). The command map's metrics
+/// (`safe_share`, `worst_cell_falls`) have no rung: leave it out (or give 0).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ContrastKey {
     pub first: String,
     pub second: String,
     pub metric: String,
-    pub rung: Rung,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rung: Option<Rung>,
 }
 
 /// A rung, or the mean over every evaluated rung.
@@ -97,9 +115,17 @@ impl Rung {
 
 impl ContrastKey {
     fn validate(&self, spec: &ExperimentSpec, at: &str) -> Result<()> {
-        if let Rung::Named(n) = &self.rung {
-            if n != "mean" {
-                bail!("{at}.rung is {n:?}: give a rung number or \"mean\"");
+        if is_command_metric(&self.metric) {
+            self.validate_command_map(spec, at)?;
+        } else {
+            match &self.rung {
+                None => bail!(
+                    "{at} gives no rung: give a rung number or \"mean\" (only the command map's metrics have none)"
+                ),
+                Some(Rung::Named(n)) if n != "mean" => {
+                    bail!("{at}.rung is {n:?}: give a rung number or \"mean\"")
+                }
+                _ => {}
             }
         }
         if !METRICS.iter().any(|m| m.0 == self.metric) {
@@ -124,17 +150,47 @@ impl ContrastKey {
         Ok(())
     }
 
+    /// A command-map metric: no rung but 0, a `[commands]` section mapping a
+    /// run of each of the two methods.
+    fn validate_command_map(&self, spec: &ExperimentSpec, at: &str) -> Result<()> {
+        if let Some(r) = self.rung.as_ref().filter(|r| **r != Rung::One(0)) {
+            bail!(
+                "{at}.rung is {}: the command map ({}) has no severity rung; leave rung out",
+                match r {
+                    Rung::One(n) => n.to_string(),
+                    Rung::Named(n) => format!("{n:?}"),
+                },
+                self.metric
+            );
+        }
+        let Some(c) = &spec.commands else {
+            bail!(
+                "{at}.metric is {:?}, a command-map metric, but the experiment file has no [commands] section",
+                self.metric
+            );
+        };
+        for label in [&self.first, &self.second] {
+            if !c.maps_method_of(spec, label) {
+                bail!(
+                    "{at}.metric is {:?}, but commands.methods lists no run of {label:?}'s method",
+                    self.metric
+                );
+            }
+        }
+        Ok(())
+    }
+
     fn show(&self) -> String {
         let title = METRICS
             .iter()
             .find(|m| m.0 == self.metric)
             .map_or(self.metric.as_str(), |m| m.2);
-        format!(
-            "{} - {}, {title}, {}",
-            self.first,
-            self.second,
-            self.rung.show()
-        )
+        match &self.rung {
+            Some(r) if !is_command_metric(&self.metric) => {
+                format!("{} - {}, {title}, {}", self.first, self.second, r.show())
+            }
+            _ => format!("{} - {}, {title}", self.first, self.second),
+        }
     }
 }
 
@@ -246,9 +302,8 @@ pub fn judge(spec: &ExperimentSpec, contrasts: &[Contrast]) -> Vec<SeedVerdict> 
                 continue;
             }
             r.p_holm = Some(adj);
-            r.verdict = Verdict::from_p(r.difference.unwrap_or(0.0), adj, v.alpha)
-                .as_str()
-                .into();
+            let safer = safer_sign(&r.key.metric) * r.difference.unwrap_or(0.0);
+            r.verdict = Verdict::from_p(safer, adj, v.alpha).as_str().into();
         }
         out.extend(rows);
     }
@@ -292,7 +347,9 @@ fn test(
         p_permutation: w.and(permutation_p(&first_values, &second_values)),
         p_holm: None,
         verdict: match w {
-            Some(w) => Verdict::from_p(w.difference, w.p, alpha).as_str().into(),
+            Some(w) => Verdict::from_p(safer_sign(&key.metric) * w.difference, w.p, alpha)
+                .as_str()
+                .into(),
             None => "not evaluated".into(),
         },
         first_seeds,
@@ -317,8 +374,9 @@ fn seed_values(
         .iter()
         .filter(|c| c.first == key.first && c.second == key.second && c.metric == key.metric)
         .filter(|c| match key.rung {
-            Rung::One(r) => c.severity == r,
-            Rung::Named(_) => true,
+            Some(Rung::One(r)) => c.severity == r,
+            // "mean", or the command map's one row
+            _ => true,
         })
         .collect();
     let side = |first: bool| -> SeedNumbers {
@@ -381,8 +439,9 @@ pub fn verdicts_csv(rows: &[SeedVerdict]) -> String {
     };
     for r in rows {
         let rung = match &r.key.rung {
-            Rung::One(n) => n.to_string(),
-            Rung::Named(n) => n.clone(),
+            Some(Rung::One(n)) => n.to_string(),
+            Some(Rung::Named(n)) => n.clone(),
+            None => String::new(),
         };
         let _ = writeln!(
             s,
@@ -509,6 +568,12 @@ fn verdicts_markdown(v: &VerdictsResult, s: &mut String) {
             );
         }
         let _ = writeln!(s);
+    }
+    if rows
+        .iter()
+        .any(|r| r.key.metric == super::commands::WORST_CELL_FALLS)
+    {
+        let _ = writeln!(s, "On the command map's worst cell's fall rate lower is safer: there ahead means a negative difference (the first method's worst cell falls less).\n");
     }
     let _ = writeln!(s, "Everything else below is exploratory (unadjusted; `contrasts.csv`). `verdicts.csv` lists each seed's number behind these verdicts.\n");
 }
@@ -734,6 +799,45 @@ mod tests {
     }
 
     #[test]
+    fn on_the_worst_cell_a_lower_fall_rate_is_ahead() {
+        let spec = spec();
+        let key = ContrastKey {
+            first: "A".into(),
+            second: "B".into(),
+            metric: "worst_cell_falls".into(),
+            rung: None,
+        };
+        let mut c = contrast(
+            "worst_cell_falls",
+            0,
+            &[0.0, 0.125, 0.0, 0.125, 0.0],
+            &[0.5, 0.625, 0.5, 0.625, 0.5],
+            true,
+        );
+        c.benchmark = "commands".into();
+        let r = test(
+            &spec,
+            std::slice::from_ref(&c),
+            &key,
+            &[],
+            "secondary",
+            0.05,
+        );
+        assert!(r.difference.unwrap() < 0.0, "{r:?}");
+        assert_eq!(r.verdict, "ahead");
+        assert_eq!((c.verdict(), c.pairs_ahead()), ("ahead", (25, 25)));
+        assert_eq!(key.show(), "A - B, command map worst cell's fall rate");
+        let csv = verdicts_csv(&[r]);
+        assert!(
+            csv.lines()
+                .nth(1)
+                .unwrap()
+                .starts_with("secondary,A,B,worst_cell_falls,,1;2;3;4;5,"),
+            "{csv}"
+        );
+    }
+
+    #[test]
     fn bad_verdict_keys_are_refused_by_name() {
         let spec = spec();
         let mut v = spec.verdicts.clone().unwrap();
@@ -748,7 +852,7 @@ mod tests {
             .to_string()
             .contains("[contrasts].pairs"));
         let mut v = spec.verdicts.clone().unwrap();
-        v.primary.rung = Rung::Named("last".into());
+        v.primary.rung = Some(Rung::Named("last".into()));
         assert!(v
             .validate(&spec)
             .unwrap_err()
