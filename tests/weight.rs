@@ -13,7 +13,7 @@ const LISTED_ABOVE_BYTES: u64 = 2_000_000;
 /// Ceiling of the tracked tree (every file `git ls-files` lists). A ratchet: lowered
 /// as the shipped runs are slimmed (the goal is 100 MB), never raised without a
 /// reason in the commit that raises it.
-const TREE_CEILING_BYTES: u64 = 520_000_000;
+const TREE_CEILING_BYTES: u64 = 420_000_000;
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
