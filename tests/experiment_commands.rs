@@ -9,6 +9,7 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
+use rall::experiment::commands::CommandsSpec;
 use rall::experiment::results::ExperimentResults;
 use rall::experiment::{run_experiment, ExperimentOptions, ExperimentSpec};
 use rall::learn::CriticKind;
@@ -340,7 +341,8 @@ fn bad_commands_sections_and_command_verdicts_are_refused_by_name() {
     let file = d.join("good.toml");
     std::fs::write(&file, spec_text(d, COMMANDS, VERDICTS)).unwrap();
     let spec = ExperimentSpec::from_file(&file).unwrap();
-    assert_eq!(spec.commands.unwrap().yaw_rate_rad_s, [-0.5, 0.5]);
+    let commands = CommandsSpec::of(&spec).unwrap().unwrap();
+    assert_eq!(commands.yaw_rate_rad_s, [-0.5, 0.5]);
     for (commands, verdicts, names) in [
         // an unknown key
         (

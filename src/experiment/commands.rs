@@ -5,13 +5,15 @@
 //! the worst cell's fall rate (the highest over the cells); per method: their mean
 //! over its seeds with a t-interval over seeds, and the worst cell of any seed.
 //! Both numbers are also contrasts (`safe_share`, `worst_cell_falls`, one number
-//! per seed) that `[verdicts]` may name.
+//! per seed) that `[verdicts]` may name. [`CommandMap`] is the built-in
+//! [`Benchmark`] that runs it.
 
 use anyhow::{ensure, Context, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use super::benchmark::{Benchmark, BenchmarkContext, Evaluated};
 use super::contrasts::{Contrast, CONTRAST_LEVEL};
 use super::curves::Resampling;
 use super::final_policy::load_final_policy;
@@ -88,7 +90,45 @@ fn check_axis(key: &str, values: &[f64]) -> Result<()> {
     Ok(())
 }
 
+/// The command map as a benchmark of `rall experiment` (section `[commands]`).
+pub struct CommandMap;
+
+impl Benchmark for CommandMap {
+    type Section = CommandsSpec;
+    type Output = CommandsResult;
+
+    fn name(&self) -> &'static str {
+        BENCHMARK
+    }
+
+    fn stage(&self) -> &'static str {
+        "command-space maps"
+    }
+
+    fn validate(&self, section: &CommandsSpec, spec: &ExperimentSpec) -> Result<()> {
+        section.validate(spec)
+    }
+
+    fn evaluate(
+        &self,
+        section: &CommandsSpec,
+        cx: &BenchmarkContext,
+    ) -> Result<Evaluated<CommandsResult>> {
+        let (output, contrasts) =
+            evaluate_commands(cx.spec, section, cx.available, cx.threads, cx.cache)?;
+        Ok(Evaluated { output, contrasts })
+    }
+}
+
 impl CommandsSpec {
+    /// The experiment's `[commands]` section (`None` without one); one that does
+    /// not parse is refused, naming the key.
+    pub fn of(spec: &ExperimentSpec) -> Result<Option<CommandsSpec>> {
+        super::benchmark::section(spec, BENCHMARK)
+            .map(|v| CommandsSpec::deserialize(v.clone()).context("[commands]"))
+            .transpose()
+    }
+
     /// Every method is a run label (none twice), the grid has a cell, the robots,
     /// the episode length and the threshold are usable; each refusal names its key.
     pub fn validate(&self, spec: &ExperimentSpec) -> Result<()> {

@@ -1,9 +1,15 @@
 //! The command maps in the results: `commands.csv` (every cell of every run),
-//! `commands_by_method.csv` and the README's section "Commands a policy cannot
-//! hold", all from [`CommandsResult`] alone (so `--redraw` rebuilds them).
+//! `commands_by_method.csv`, the README's section "Commands a policy cannot
+//! hold" and each method's figure, all from [`CommandsResult`] alone (so
+//! `--redraw` rebuilds them): the command map's [`BenchmarkOutput`].
 
 use std::fmt::Write as _;
+use std::path::Path;
 
+use anyhow::{bail, Result};
+
+use super::benchmark::{BenchmarkOutput, FigureEntry};
+use super::command_plots::commands_figure;
 use super::commands::{CommandCell, CommandsResult, MethodCommands, SeedMean};
 use crate::eval::report::csv_field;
 
@@ -160,10 +166,40 @@ impl CommandsResult {
         }
         parts.join("; ")
     }
+}
+
+/// What each method's figure shows, as the README lists it.
+const FIGURE_SHOWS: &str = "a method's command map: fall rate per command (vx across, yaw rate up, a panel per vy), mean over its seeds, with the seeds in which each cell is safe";
+
+impl BenchmarkOutput for CommandsResult {
+    fn csv_files(&self) -> Vec<(String, String)> {
+        vec![
+            ("commands.csv".into(), self.cells_csv()),
+            ("commands_by_method.csv".into(), self.methods_csv()),
+        ]
+    }
+
+    /// One map per method, `figures/commands_<method>.svg`.
+    fn figures(&self) -> Vec<FigureEntry> {
+        self.methods
+            .iter()
+            .map(|m| FigureEntry {
+                file: m.figure.clone(),
+                shows: FIGURE_SHOWS.into(),
+            })
+            .collect()
+    }
+
+    fn draw(&self, file: &str, path: &Path) -> Result<()> {
+        match self.methods.iter().find(|m| m.figure == file) {
+            Some(m) => commands_figure(self, m, path),
+            None => bail!("no method's command map is drawn as {file:?}"),
+        }
+    }
 
     /// The README's section, on its first page: per method the safe share, the
     /// worst cell and its fall rate.
-    pub fn markdown(&self, s: &mut String) {
+    fn markdown(&self, s: &mut String) {
         let _ = writeln!(s, "## Commands a policy cannot hold\n");
         let g = &self.grid;
         let _ = writeln!(

@@ -1,14 +1,13 @@
 //! Evaluating an experiment: tracking, table I (TTF), table II (platform), the
-//! race with the meta controllers and the robustness curves, stage by stage
-//! with the time each took.
+//! race with the meta controllers, the robustness curves and each benchmark with
+//! a section, stage by stage with the time each took.
 
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 
+use super::benchmark::{self, BenchmarkContext};
 use super::clock::PhaseClock;
-use super::commands::{evaluate_commands, CommandsResult};
-use super::contrasts::Contrast;
 use super::final_policy::{
     choose_final_policies, load_final_policy, load_run, load_runs, newest_checkpoint,
     warn_unchosen_teachers,
@@ -284,7 +283,7 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let stages = 5
         + spec.curves.is_some() as usize
         + spec.critic_tail.is_some() as usize
-        + spec.commands.is_some() as usize;
+        + benchmark::stage_count(spec);
     let mut clock = PhaseClock::new(stages);
     let runs = runs_to_evaluate(spec, opts)?;
     let available = runs_with_checkpoints(spec, &runs)?;
@@ -370,7 +369,13 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
         ),
     };
     let critic_tail = critics_before_falls(spec, &available, threads, &cache, &mut clock)?;
-    let commands = command_maps(spec, &available, threads, &cache, &mut clock)?;
+    let cx = BenchmarkContext {
+        spec,
+        available: &available,
+        threads,
+        cache: &cache,
+    };
+    let (outputs, more) = benchmark::evaluate_benchmarks(&cx, &mut clock)?;
     let (whole, phases) = clock.finish();
     let cache_use = cache.usage();
     if let Some(dir) = cache.dir() {
@@ -381,10 +386,8 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     results.phases = phases;
     results.rollouts = cache.dir().map(|_| cache_use);
     results.set_curves(spec, curves)?;
-    if let Some((maps, more)) = commands {
-        contrasts.extend(more);
-        results.commands = Some(maps);
-    }
+    contrasts.extend(more);
+    results.benchmarks = outputs;
     results.verdicts = super::verdicts::VerdictsResult::of(spec, &contrasts);
     results.contrasts = contrasts;
     finish_results(spec, &mut results, critic_tail, spread)?;
@@ -427,22 +430,6 @@ fn critics_before_falls(
     Ok(Some(critic_tail::evaluate_critic_tail(
         spec, s, available, threads, cache,
     )?))
-}
-
-/// The stage of `[commands]` (none without it): every listed run's command map,
-/// and the contrasts of `[contrasts]`' pairs on it.
-fn command_maps(
-    spec: &ExperimentSpec,
-    available: &[String],
-    threads: usize,
-    cache: &RolloutCache,
-    clock: &mut PhaseClock,
-) -> Result<Option<(CommandsResult, Vec<Contrast>)>> {
-    let Some(c) = &spec.commands else {
-        return Ok(None);
-    };
-    clock.next("command-space maps");
-    Ok(Some(evaluate_commands(spec, c, available, threads, cache)?))
 }
 
 /// The results' parts that need no rollout: the critics' table, the checkpoint

@@ -2,9 +2,11 @@
 //! missing, resumes what is unfinished, skips what is done; then evaluates every
 //! policy with the paper's protocol (tracking, table I TTF, table II platform
 //! drops, race track with the IQR meta controller; with `[commands]`, each run's
-//! command-space safety map) and writes tables beside the paper's numbers,
-//! CSV/JSON with every cell, bootstrap intervals and figures.
+//! command-space safety map; each registered benchmark with its section, see
+//! [`benchmark`]) and writes tables beside the paper's numbers, CSV/JSON with
+//! every cell, bootstrap intervals and figures.
 
+pub mod benchmark;
 mod clock;
 pub mod command_plots;
 pub mod commands;
@@ -37,6 +39,7 @@ use anyhow::{bail, Context, Result};
 
 use crate::config::TrainConfig;
 use crate::runner::Progress;
+pub use benchmark::{register_benchmark, Benchmark, BenchmarkContext, BenchmarkOutput};
 pub use clock::PhaseTime;
 pub use evaluate::{calibrate_threshold, evaluate_all};
 pub use final_policy::{choose_final_policies, newest_checkpoint, selected_checkpoint};

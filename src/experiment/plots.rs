@@ -5,6 +5,7 @@ use std::path::Path;
 use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 
+use super::benchmark::FigureEntry;
 use super::curve_plots::{CurveFigure, CURVE_FIGURES};
 use super::results::ExperimentResults;
 use super::stats::Estimate;
@@ -383,8 +384,8 @@ pub enum Figure {
     Platform,
     Race,
     RaceIqr,
-    /// A method's command map: its index in the command maps' methods, and its file.
-    Commands(usize, String),
+    /// A benchmark's figure: the benchmark's name and the figure.
+    Benchmark(String, FigureEntry),
 }
 
 impl Figure {
@@ -395,19 +396,19 @@ impl Figure {
             Figure::Platform => "platform.svg".into(),
             Figure::Race => "race.svg".into(),
             Figure::RaceIqr => "race_iqr.svg".into(),
-            Figure::Commands(_, file) => file.clone(),
+            Figure::Benchmark(_, f) => f.file.clone(),
         }
     }
 
     /// What the figure shows, as the results' README lists it.
-    pub fn shows(&self) -> &'static str {
+    pub fn shows(&self) -> &str {
         match self {
             Figure::Curve(c) => c.2,
             Figure::Ttf => "TTF per cell and method, seeds pooled, with intervals and a dot per seed (table I)",
             Figure::Platform => "platform success per height and method, seeds pooled, a dot per seed (table II)",
             Figure::Race => "race return quantiles per method (seeds pooled, a dot per seed) and the meta controller",
             Figure::RaceIqr => "the risk-neutral critic's IQR and the meta controller's use of the safe policy along the race track (the paper's fig. 4, left)",
-            Figure::Commands(..) => "a method's command map: fall rate per command (vx across, yaw rate up, a panel per vy), mean over its seeds, with the seeds in which each cell is safe",
+            Figure::Benchmark(_, f) => &f.shows,
         }
     }
 
@@ -418,10 +419,7 @@ impl Figure {
             Figure::Platform => platform_figure(r, path),
             Figure::Race => race_figure(r, path),
             Figure::RaceIqr => race_iqr_figure(r, path),
-            Figure::Commands(k, _) => match &r.commands {
-                Some(c) => super::command_plots::commands_figure(c, &c.methods[*k], path),
-                None => Ok(()),
-            },
+            Figure::Benchmark(name, f) => r.benchmarks.draw(name, &f.file, path),
         }
     }
 }
@@ -429,7 +427,7 @@ impl Figure {
 /// The figures of `r`, in the order the README lists them: the robustness
 /// curves first (one per benchmark with points), then the rung-0 tables'
 /// figures; the IQR figure only when the experiment has a meta controller; last
-/// each method's command map (`[commands]`).
+/// each benchmark's (`[commands]`: each method's command map).
 /// The one list both [`write_all`] and the README read.
 pub fn figures(r: &ExperimentResults) -> Vec<Figure> {
     let curves = CURVE_FIGURES
@@ -437,16 +435,15 @@ pub fn figures(r: &ExperimentResults) -> Vec<Figure> {
         .filter(|c| r.curves.iter().any(|p| p.metric == c.1))
         .map(Figure::Curve);
     let meta = (!r.meta.is_empty()).then_some(Figure::RaceIqr);
-    let commands = r.commands.iter().flat_map(|c| {
-        c.methods
-            .iter()
-            .enumerate()
-            .map(|(k, m)| Figure::Commands(k, m.figure.clone()))
-    });
+    let benchmarks = r
+        .benchmarks
+        .figures()
+        .into_iter()
+        .map(|(name, f)| Figure::Benchmark(name, f));
     curves
         .chain([Figure::Ttf, Figure::Platform, Figure::Race])
         .chain(meta)
-        .chain(commands)
+        .chain(benchmarks)
         .collect()
 }
 

@@ -181,9 +181,10 @@ pub struct ExperimentResults {
     /// With `[critic_tail]`: each run's critic before falls and elsewhere.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub critic_tail: Option<super::critic_tail::CriticTail>,
-    /// With `[commands]`: each listed run's command-space map, and each method's.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub commands: Option<super::commands::CommandsResult>,
+    /// Each benchmark's output with its section (`[commands]`: each listed run's
+    /// command-space map, and each method's), one entry per benchmark by its name.
+    #[serde(flatten)]
+    pub benchmarks: super::benchmark::BenchmarkOutputs,
     /// With `[contrasts]`: each pair of methods on every benchmark and rung.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub contrasts: Vec<Contrast>,
@@ -253,7 +254,7 @@ impl ExperimentResults {
             checkpoint_spread: Vec::new(),
             risk_signal: Vec::new(),
             critic_tail: None,
-            commands: None,
+            benchmarks: Default::default(),
             contrasts: Vec::new(),
             verdicts: None,
             preface: None,

@@ -1,6 +1,7 @@
 //! The experiment file (`experiments/paper.toml`): runs to train and the
 //! evaluations of the paper, as data.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -52,9 +53,14 @@ pub struct ExperimentSpec {
     /// What each run's critic says before its robots fall (`[critic_tail]`); absent: not reported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub critic_tail: Option<super::critic_tail::CriticTailSpec>,
-    /// Command-space safety maps of the listed runs (`[commands]`); absent: none.
+    /// Command-space safety maps of the listed runs (`[commands]`), the section of
+    /// the built-in benchmark `commands` (`CommandsSpec::of` reads it); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub commands: Option<super::commands::CommandsSpec>,
+    pub commands: Option<toml::Value>,
+    /// The sections of registered benchmarks (`[benchmarks.<name>]`), each read
+    /// by its benchmark (`super::benchmark`); absent: none runs.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub benchmarks: BTreeMap<String, toml::Value>,
     /// Pairs of methods compared rung by rung (`[contrasts]`); absent: none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contrasts: Option<super::contrasts::ContrastsSpec>,
@@ -429,9 +435,7 @@ impl ExperimentSpec {
         if let Some(sel) = &self.selection {
             sel.validate(self.tracking.seed)?;
         }
-        if let Some(c) = &self.commands {
-            c.validate(self)?;
-        }
+        super::benchmark::validate_sections(self)?;
         if let Some(v) = &self.verdicts {
             v.validate(self)?;
         }

@@ -163,7 +163,7 @@ impl ContrastKey {
                 self.metric
             );
         }
-        let Some(c) = &spec.commands else {
+        let Some(c) = super::commands::CommandsSpec::of(spec)? else {
             bail!(
                 "{at}.metric is {:?}, a command-map metric, but the experiment file has no [commands] section",
                 self.metric

@@ -10,7 +10,8 @@ use crate::experiment::curves::curve_csv;
 use crate::experiment::spec::common_ground_name;
 
 impl ExperimentResults {
-    pub(super) fn csv_files(&self) -> Vec<(&'static str, String)> {
+    /// Every CSV table: (file name, text), the benchmarks' last.
+    pub(super) fn csv_files(&self) -> Vec<(String, String)> {
         let mut files = vec![
             ("runs.csv", self.runs_csv()),
             ("ttf_by_method.csv", self.ttf_by_method_csv()),
@@ -25,10 +26,6 @@ impl ExperimentResults {
         }
         if !self.contrasts.is_empty() {
             files.push(("contrasts.csv", contrasts_csv(&self.contrasts)));
-        }
-        if let Some(c) = &self.commands {
-            files.push(("commands.csv", c.cells_csv()));
-            files.push(("commands_by_method.csv", c.methods_csv()));
         }
         if let Some(v) = &self.verdicts {
             files.push((
@@ -51,6 +48,9 @@ impl ExperimentResults {
                 crate::experiment::critic_tail::tail_csv(t),
             ));
         }
+        let mut files: Vec<(String, String)> =
+            files.into_iter().map(|(n, t)| (n.to_string(), t)).collect();
+        files.extend(self.benchmarks.csv_files());
         files
     }
 

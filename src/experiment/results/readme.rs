@@ -107,9 +107,7 @@ impl ExperimentResults {
         if let Some(p) = &self.preface {
             let _ = writeln!(s, "{}\n", p.trim_end());
         }
-        if let Some(c) = &self.commands {
-            c.markdown(&mut s);
-        }
+        self.benchmarks.markdown(&mut s);
         let _ = writeln!(
             s,
             "Every number: ours with its {} in brackets; the paper's beside it where it gives one.\n",

@@ -77,8 +77,13 @@ impl ExperimentResults {
         std::fs::create_dir_all(dir.join("figures"))
             .with_context(|| format!("creating {}", dir.display()))?;
         write_file(dir, "README.md", &self.markdown())?;
-        for (name, text) in self.csv_files() {
-            write_file(dir, name, &text)?;
+        let files = self.csv_files();
+        for (k, (name, text)) in files.iter().enumerate() {
+            anyhow::ensure!(
+                !files[..k].iter().any(|(n, _)| n == name),
+                "two tables are named {name}: a benchmark's CSV file takes another's name"
+            );
+            write_file(dir, name, text)?;
         }
         crate::experiment::plots::write_all(self, &dir.join("figures"))
     }
