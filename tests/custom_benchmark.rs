@@ -3,8 +3,9 @@
 //! `register_benchmark` call and run by `rall experiment` from its section
 //! `[benchmarks.episode_length]` on a tiny experiment. Its CSV file, README
 //! section and results.json entry hold the numbers a direct evaluation gives,
-//! `--redraw` writes them again from results.json, and a bad section is refused
-//! by name.
+//! its metric is a contrast `[verdicts]` can name (one number per seed),
+//! `--redraw` writes them again from results.json, and a bad section or verdict
+//! is refused by name.
 
 mod common;
 
@@ -15,8 +16,11 @@ use std::sync::{Arc, OnceLock};
 
 use anyhow::{ensure, Context, Result};
 use rall::eval::{evaluate_tracking, tracking_env, ActionMode, NamedPolicy};
-use rall::experiment::benchmark::Evaluated;
+use rall::experiment::benchmark::{BenchmarkMetric, Evaluated};
+use rall::experiment::contrasts::Contrast;
+use rall::experiment::pooled::Method;
 use rall::experiment::results::ExperimentResults;
+use rall::experiment::stats::Estimate;
 use rall::experiment::{
     newest_checkpoint, register_benchmark, run_experiment, Benchmark, BenchmarkContext,
     BenchmarkOutput, ExperimentOptions, ExperimentSpec,
@@ -72,6 +76,49 @@ impl BenchmarkOutput for Lengths {
 
 struct EpisodeLength;
 
+/// The benchmark's one metric, a contrast per `[contrasts]` pair.
+const MEAN_STEPS: &str = "mean_steps";
+
+/// The mean of each seed of the method whose seeds hold `label`, and their labels.
+fn seeds_of(methods: &[Method], runs: &[RunLength], label: &str) -> (Vec<f64>, Vec<String>) {
+    let method = methods.iter().find(|m| m.seeds.iter().any(|s| s == label));
+    runs.iter()
+        .filter(|r| method.is_some_and(|m| m.label == r.method))
+        .map(|r| (r.mean_steps, r.label.clone()))
+        .unzip()
+}
+
+/// Each `[contrasts]` pair whose two methods were measured, on the mean episode
+/// length (its interval over robots left as the value: a toy).
+fn contrasts(spec: &ExperimentSpec, methods: &[Method], runs: &[RunLength]) -> Vec<Contrast> {
+    let pairs = spec.contrasts.as_ref().map_or(&[][..], |c| &c.pairs[..]);
+    let mut out = Vec::new();
+    for [a, b] in pairs {
+        let ((fa, la), (fb, lb)) = (seeds_of(methods, runs, a), seeds_of(methods, runs, b));
+        if fa.is_empty() || fb.is_empty() {
+            continue;
+        }
+        let d = fa.iter().sum::<f64>() / fa.len() as f64 - fb.iter().sum::<f64>() / fb.len() as f64;
+        out.push(Contrast {
+            benchmark: "episode_length".into(),
+            metric: MEAN_STEPS.into(),
+            severity: 0,
+            first: a.clone(),
+            second: b.clone(),
+            over_robots: Estimate {
+                value: d,
+                lo: d,
+                hi: d,
+            },
+            first_seeds: fa,
+            second_seeds: fb,
+            first_labels: la,
+            second_labels: lb,
+        });
+    }
+    out
+}
+
 /// The mean episode length of `policy` over `episodes` tracking episodes.
 fn mean_length(policy: &NamedPolicy, episodes: usize, threads: usize, seed: u64) -> Result<f64> {
     let env = tracking_env(&policy.env);
@@ -122,7 +169,7 @@ impl Benchmark for EpisodeLength {
                 mean_steps: mean_length(&policy, s.episodes, cx.threads, s.seed)?,
             });
         }
-        let methods = methods
+        let pooled = methods
             .iter()
             .map(|m| {
                 let of: Vec<f64> = runs
@@ -134,9 +181,22 @@ impl Benchmark for EpisodeLength {
             })
             .collect();
         Ok(Evaluated {
-            output: Lengths { runs, methods },
-            contrasts: Vec::new(),
+            contrasts: contrasts(cx.spec, &methods, &runs),
+            output: Lengths {
+                runs,
+                methods: pooled,
+            },
         })
+    }
+
+    fn metrics(&self) -> Vec<BenchmarkMetric> {
+        vec![BenchmarkMetric {
+            name: MEAN_STEPS,
+            title: "mean episode length (steps)",
+            contrast_title: "episode length: mean steps",
+            decimals: 2,
+            lower_is_safer: false,
+        }]
     }
 }
 
@@ -148,10 +208,21 @@ fn registered() {
 
 const SECTION: &str = r#"
 [benchmarks.episode_length]
-methods = ["Baseline", "RALL", "RALL seed 2"]
+methods = ["Baseline", "Baseline seed 2", "RALL", "RALL seed 2"]
 episodes = 3
 seed = 5
 "#;
+
+const VERDICTS: &str = r#"
+[contrasts]
+pairs = [["RALL", "Baseline"]]
+
+[verdicts]
+primary = { first = "RALL", second = "Baseline", metric = "mean_steps" }
+"#;
+
+/// The runs, in the file's order.
+const LABELS: [&str; 4] = ["Baseline", "Baseline seed 2", "RALL", "RALL seed 2"];
 
 /// A tiny run's config; `max_tilt_rad` small makes every robot fall at once.
 fn write_config(dir: &Path, name: &str, critic: CriticKind, max_tilt_rad: f64) -> String {
@@ -162,14 +233,15 @@ fn write_config(dir: &Path, name: &str, critic: CriticKind, max_tilt_rad: f64) -
     path.display().to_string()
 }
 
-/// Baseline (its robots fall at once) and two seeds of RALL (they stand), the
-/// smallest tables, and `section` appended.
+/// Two seeds each of Baseline (its robots fall at once) and RALL (they stand),
+/// the smallest tables, and `section` appended.
 fn spec_text(dir: &Path, section: &str) -> String {
     let base = write_config(dir, "baseline", CriticKind::Scalar, 1e-4);
     let rall = write_config(dir, "rall", CriticKind::Iqn, 1.2);
     let mut runs = String::new();
     for (name, label, config, seed) in [
         ("baseline", "Baseline", &base, 1),
+        ("baseline", "Baseline seed 2", &base, 2),
         ("rall", "RALL", &rall, 1),
         ("rall", "RALL seed 2", &rall, 2),
     ] {
@@ -203,7 +275,8 @@ fn a_benchmark_registered_outside_the_crate_runs_in_an_experiment() {
     registered();
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("toy.toml");
-    std::fs::write(&file, spec_text(dir.path(), SECTION)).unwrap();
+    let text = spec_text(dir.path(), &format!("{SECTION}{VERDICTS}"));
+    std::fs::write(&file, text).unwrap();
     let spec = ExperimentSpec::from_file(&file).unwrap();
     let all = ExperimentOptions {
         train: true,
@@ -213,38 +286,53 @@ fn a_benchmark_registered_outside_the_crate_runs_in_an_experiment() {
     };
     run_experiment(&spec, &all, Arc::new(AtomicBool::new(false))).unwrap();
     let out = dir.path().join("results");
-    let expected: Vec<f64> = ["Baseline", "RALL", "RALL seed 2"]
-        .iter()
-        .map(|l| direct(&spec, l))
-        .collect();
+    let expected: Vec<f64> = LABELS.iter().map(|l| direct(&spec, l)).collect();
     // Baseline's robots fall at once, RALL's stand to the time-out
-    assert!(expected[0] < expected[1], "{expected:?}");
+    assert!(expected[0] < expected[2], "{expected:?}");
 
     let csv = std::fs::read_to_string(out.join("episode_length.csv")).unwrap();
-    let want = format!(
-        "method,label,mean_steps\nBaseline,Baseline,{:.4}\nRALL,RALL,{:.4}\nRALL,RALL seed 2,{:.4}\n",
-        expected[0], expected[1], expected[2]
-    );
+    let mut want = String::from("method,label,mean_steps\n");
+    for (l, e) in LABELS.iter().zip(&expected) {
+        let method = l.trim_end_matches(" seed 2");
+        want.push_str(&format!("{method},{l},{e:.4}\n"));
+    }
     assert_eq!(csv, want);
 
-    let rall_mean = (expected[1] + expected[2]) / 2.0;
+    let (base_mean, rall_mean) = (
+        (expected[0] + expected[1]) / 2.0,
+        (expected[2] + expected[3]) / 2.0,
+    );
     let readme = std::fs::read_to_string(out.join("README.md")).unwrap();
     let rows = format!(
-        "## Episode length\n\n| Method | mean steps |\n|---|---:|\n| Baseline | {:.2} |\n| RALL | {rall_mean:.2} |\n",
-        expected[0]
+        "## Episode length\n\n| Method | mean steps |\n|---|---:|\n| Baseline | {base_mean:.2} |\n| RALL | {rall_mean:.2} |\n"
     );
     assert!(readme.contains(&rows), "{readme}");
+    assert!(
+        readme.contains("- episode length: mean steps: "),
+        "{readme}"
+    );
 
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
     let entry = &json["episode_length"];
     let runs = entry["runs"].as_array().unwrap();
-    assert_eq!(runs.len(), 3);
+    assert_eq!(runs.len(), 4);
     for (r, e) in runs.iter().zip(&expected) {
         assert_eq!(r["mean_steps"].as_f64().unwrap(), *e, "{r}");
     }
     assert_eq!(entry["methods"][1][0], "RALL");
     assert!((entry["methods"][1][1].as_f64().unwrap() - rall_mean).abs() < 1e-12);
+
+    // the primary verdict is tested on each seed's own number
+    let verdicts = std::fs::read_to_string(out.join("verdicts.csv")).unwrap();
+    let row = verdicts.lines().nth(1).unwrap();
+    let values = |v: &[f64]| format!("{:.4};{:.4}", v[0], v[1]);
+    let wanted = format!(
+        ",RALL,Baseline,mean_steps,,1;2,1;2,{},{},",
+        values(&expected[2..]),
+        values(&expected[..2])
+    );
+    assert!(row.contains(&wanted), "{row} lacks {wanted}");
 
     // --redraw writes the table and the README again from results.json alone
     std::fs::remove_file(out.join("episode_length.csv")).unwrap();
@@ -258,12 +346,19 @@ fn a_benchmark_registered_outside_the_crate_runs_in_an_experiment() {
 }
 
 #[test]
-fn bad_sections_and_names_are_refused() {
+fn bad_sections_verdicts_and_names_are_refused() {
     registered();
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
+    let with_verdicts = |s: String| format!("{s}{VERDICTS}");
     for (section, names) in [
         (SECTION.replace("episodes = 3", "episode = 3"), "`episode`"),
+        // the benchmark's metric has no rung, and needs the benchmark's section
+        (
+            with_verdicts(SECTION.into()).replace("\"mean_steps\"", "\"mean_steps\", rung = 2"),
+            "has no severity rung",
+        ),
+        (VERDICTS.into(), "no [benchmarks.episode_length] section"),
         (
             SECTION.replace("episodes = 3", "episodes = 0"),
             "benchmarks.episode_length.episodes",

@@ -61,6 +61,22 @@ pub struct Evaluated<O> {
     pub contrasts: Vec<Contrast>,
 }
 
+/// A number of a benchmark's contrasts (one per seed) that `[verdicts]` may
+/// name; it has no severity rung.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BenchmarkMetric {
+    /// Its name: the `metric` of its contrasts and of a verdict.
+    pub name: &'static str,
+    /// Its title in the verdicts' table (`command map safe share`).
+    pub title: &'static str,
+    /// Its title in the README's contrast tables (`command map: safe share`).
+    pub contrast_title: &'static str,
+    /// Decimals of its differences.
+    pub decimals: usize,
+    /// Lower is safer: a method is ahead with a negative difference.
+    pub lower_is_safer: bool,
+}
+
 /// One figure of a benchmark: its file name in `figures/` and what it shows
 /// (the README's list of figures).
 #[derive(Debug, Clone, PartialEq)]
@@ -115,6 +131,18 @@ pub trait Benchmark: Send + Sync + 'static {
         section: &Self::Section,
         cx: &BenchmarkContext,
     ) -> Result<Evaluated<Self::Output>>;
+
+    /// The metrics of its contrasts that `[verdicts]` may name; none by default.
+    fn metrics(&self) -> Vec<BenchmarkMetric> {
+        Vec::new()
+    }
+
+    /// Whether the section evaluates some run of `label`'s method, as a verdict
+    /// on one of its metrics needs; by default every run.
+    fn compares(&self, section: &Self::Section, spec: &ExperimentSpec, label: &str) -> bool {
+        let _ = (section, spec, label);
+        true
+    }
 }
 
 /// A benchmark with its section and output as values (the registry's entries).
@@ -124,6 +152,8 @@ trait AnyBenchmark: Send + Sync {
     fn validate(&self, section: &toml::Value, spec: &ExperimentSpec) -> Result<()>;
     fn evaluate(&self, section: &toml::Value, cx: &BenchmarkContext) -> Result<Measured>;
     fn decode(&self, json: &Json) -> Result<Box<dyn AnyOutput>>;
+    fn metrics(&self) -> Vec<BenchmarkMetric>;
+    fn compares(&self, section: &toml::Value, spec: &ExperimentSpec, label: &str) -> Result<bool>;
 }
 
 /// One benchmark's output and contrasts.
@@ -165,6 +195,13 @@ impl<B: Benchmark> AnyBenchmark for B {
             )
         })?;
         Ok(Box::new(output))
+    }
+    fn metrics(&self) -> Vec<BenchmarkMetric> {
+        Benchmark::metrics(self)
+    }
+    fn compares(&self, section: &toml::Value, spec: &ExperimentSpec, label: &str) -> Result<bool> {
+        let section = parse_section(self, section)?;
+        Ok(Benchmark::compares(self, &section, spec, label))
     }
 }
 
@@ -299,6 +336,47 @@ pub(super) fn validate_sections(spec: &ExperimentSpec) -> Result<()> {
     for b in &known {
         if let Some(s) = section(spec, b.name()) {
             b.validate(s, spec)?;
+        }
+    }
+    Ok(())
+}
+
+/// Every benchmark's metrics with its name, in stage order.
+pub fn metrics() -> Vec<(&'static str, BenchmarkMetric)> {
+    let mut out = Vec::new();
+    for b in all_benchmarks() {
+        out.extend(b.metrics().into_iter().map(|m| (b.name(), m)));
+    }
+    out
+}
+
+/// The benchmark whose contrasts have metric `name`, and the metric.
+pub fn metric(name: &str) -> Option<(&'static str, BenchmarkMetric)> {
+    metrics().into_iter().find(|(_, m)| m.name == name)
+}
+
+/// Refuses a verdict at `at` on benchmark metric `metric` between the methods of
+/// `labels` unless the experiment has the benchmark's section and it evaluates a
+/// run of each.
+pub(super) fn check_compared(
+    spec: &ExperimentSpec,
+    metric: &str,
+    labels: [&str; 2],
+    at: &str,
+) -> Result<()> {
+    let Some(b) = self::metric(metric).and_then(|(name, _)| find(name)) else {
+        bail!("{at}.metric is {metric:?}, the metric of no benchmark");
+    };
+    let title = section_title(b.name());
+    let Some(s) = section(spec, b.name()) else {
+        bail!(
+            "{at}.metric is {metric:?}, a metric of the benchmark {}, but the experiment file has no {title} section",
+            b.name()
+        );
+    };
+    for label in labels {
+        if !b.compares(s, spec, label)? {
+            bail!("{at}.metric is {metric:?}, but {title} lists no run of {label:?}'s method");
         }
     }
     Ok(())

@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::benchmark::{Benchmark, BenchmarkContext, Evaluated};
+use super::benchmark::{Benchmark, BenchmarkContext, BenchmarkMetric, Evaluated};
 use super::contrasts::{Contrast, CONTRAST_LEVEL};
 use super::curves::Resampling;
 use super::final_policy::load_final_policy;
@@ -117,6 +117,30 @@ impl Benchmark for CommandMap {
         let (output, contrasts) =
             evaluate_commands(cx.spec, section, cx.available, cx.threads, cx.cache)?;
         Ok(Evaluated { output, contrasts })
+    }
+
+    /// The safe share, and the worst cell's fall rate (lower is safer).
+    fn metrics(&self) -> Vec<BenchmarkMetric> {
+        vec![
+            BenchmarkMetric {
+                name: SAFE_SHARE,
+                title: "command map safe share",
+                contrast_title: "command map: safe share",
+                decimals: 3,
+                lower_is_safer: false,
+            },
+            BenchmarkMetric {
+                name: WORST_CELL_FALLS,
+                title: "command map worst cell's fall rate",
+                contrast_title: "command map: worst cell's fall rate",
+                decimals: 3,
+                lower_is_safer: true,
+            },
+        ]
+    }
+
+    fn compares(&self, section: &CommandsSpec, spec: &ExperimentSpec, label: &str) -> bool {
+        section.maps_method_of(spec, label)
     }
 }
 

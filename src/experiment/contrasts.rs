@@ -104,10 +104,10 @@ pub struct Contrast {
 pub const CONTRAST_LEVEL: f64 = 0.95;
 
 /// +1 for a metric on which higher is more robust (every benchmark's but one),
-/// -1 for the command map's worst-cell fall rate, on which lower is safer: a
-/// method is ahead on it with a negative difference.
+/// -1 for a benchmark's metric on which lower is safer (the command map's
+/// worst-cell fall rate): a method is ahead on it with a negative difference.
 pub fn safer_sign(metric: &str) -> f64 {
-    if metric == super::commands::WORST_CELL_FALLS {
+    if super::benchmark::metric(metric).is_some_and(|(_, m)| m.lower_is_safer) {
         -1.0
     } else {
         1.0
@@ -341,15 +341,27 @@ pub fn contrasts_csv(rows: &[Contrast]) -> String {
     s
 }
 
-/// The metrics in the order the results show them: (metric, title, decimals).
-const METRICS: [(&str, &str, usize); 6] = [
+/// The ladder's metrics in the order the results show them: (metric, title, decimals).
+const RUNG_METRICS: [(&str, &str, usize); 4] = [
     ("ttf", "TTF", 3),
     ("strict_ttf", "strict TTF", 3),
     ("success_pct", "platform success (points)", 1),
     ("return_q25", "race return q0.25", 1),
-    ("safe_share", "command map: safe share", 3),
-    ("worst_cell_falls", "command map: worst cell's fall rate", 3),
 ];
+
+/// Every metric in the order the results show them: the ladder's, then each
+/// benchmark's (`super::benchmark`).
+fn table_metrics() -> Vec<(&'static str, &'static str, usize)> {
+    let mut out = RUNG_METRICS.to_vec();
+    let of_benchmarks = super::benchmark::metrics().into_iter();
+    out.extend(of_benchmarks.map(|(_, m)| (m.name, m.contrast_title, m.decimals)));
+    out
+}
+
+/// Whether contrast `c` is on a benchmark's metric, which has no rung.
+fn without_rung(c: &Contrast) -> bool {
+    super::benchmark::metric(&c.metric).is_some()
+}
 
 /// `rungs 0, 2` / `rung 3` / `none`.
 fn rung_list(rungs: &[usize]) -> String {
@@ -377,6 +389,7 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
             pairs.push((&c.first, &c.second));
         }
     }
+    let metrics = table_metrics();
     let _ = writeln!(s, "## Method against method (exploratory)\n");
     let _ = writeln!(s, "Each pair's difference, first minus second (higher is more robust on every benchmark), on every rung, over every seed. The verdict is Welch's t-test on the seeds' own numbers (the seed is the unit; 95% interval, p, and the exact permutation test over seed labels beside it): a method is called ahead or behind on a rung only when Welch's interval excludes 0. These contrasts are exploratory: none is adjusted for the others, so about one in twenty true nulls is called by chance. The interval over robots (each seed's robots resampled within their cells) describes these trained policies, never the methods.\n");
     if rows
@@ -391,7 +404,7 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
             .filter(|c| c.first == a && c.second == b)
             .collect();
         let _ = writeln!(s, "**{a} against {b}.**");
-        for (metric, title, _) in METRICS {
+        for &(metric, title, _) in &metrics {
             let of: Vec<&&Contrast> = these.iter().filter(|c| c.metric == metric).collect();
             if of.is_empty() {
                 continue;
@@ -402,7 +415,7 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
                     .map(|c| c.severity)
                     .collect()
             };
-            if of[0].benchmark == super::commands::BENCHMARK {
+            if without_rung(of[0]) {
                 let _ = writeln!(s, "- {title}: {}.", of[0].verdict());
                 continue;
             }
@@ -420,7 +433,7 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
             "| benchmark | rung | difference [over robots] | seeds: Welch 95% | p (Welch / permutation) | {a}: seeds | {b}: seeds | seed pairs ahead |"
         );
         let _ = writeln!(s, "|---|---:|---:|---:|---|---|---|---:|");
-        for (metric, title, d) in METRICS {
+        for &(metric, title, d) in &metrics {
             for c in these.iter().filter(|c| c.metric == metric) {
                 let list = |v: &[f64]| {
                     v.iter()
@@ -436,7 +449,7 @@ pub fn contrasts_markdown(rows: &[Contrast], s: &mut String) {
                     )
                 });
                 let perm = c.permutation_p().map_or("-".into(), |p| format!("{p:.3}"));
-                let rung = if c.benchmark == super::commands::BENCHMARK {
+                let rung = if without_rung(c) {
                     "-".to_string()
                 } else {
                     c.severity.to_string()

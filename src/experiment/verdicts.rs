@@ -18,10 +18,12 @@ use super::spec::ExperimentSpec;
 use crate::stats::mean;
 use crate::stats::seed_test::{holm, permutation_p, pooled_sd, seeds_for_power, welch, Verdict};
 
-/// The metrics a verdict can name: (metric, benchmark, title, decimals, seconds per
-/// unit: TTF is a share of the 20 s episode). The command map's two (`[commands]`)
-/// have no rung.
-const METRICS: [(&str, &str, &str, usize, Option<f64>); 6] = [
+/// A metric a verdict can name: (metric, benchmark, title, decimals, seconds per
+/// unit: TTF is a share of the 20 s episode).
+type MetricRow = (&'static str, &'static str, &'static str, usize, Option<f64>);
+
+/// The ladder's metrics, each on a rung.
+const RUNG_METRICS: [MetricRow; 4] = [
     ("ttf", "ttf", "TTF", 3, Some(20.0)),
     ("strict_ttf", "ttf", "strict TTF", 3, Some(20.0)),
     (
@@ -32,21 +34,20 @@ const METRICS: [(&str, &str, &str, usize, Option<f64>); 6] = [
         None,
     ),
     ("return_q25", "race", "race return q0.25", 1, None),
-    ("safe_share", "commands", "command map safe share", 3, None),
-    (
-        "worst_cell_falls",
-        "commands",
-        "command map worst cell's fall rate",
-        3,
-        None,
-    ),
 ];
 
-/// Whether `metric` is one of the command map's (no rung).
-fn is_command_metric(metric: &str) -> bool {
-    METRICS
-        .iter()
-        .any(|m| m.0 == metric && m.1 == super::commands::BENCHMARK)
+/// Every metric a verdict can name: the ladder's, then each benchmark's
+/// (`super::benchmark`; the command map's two, `[commands]`), which have no rung.
+fn metrics() -> Vec<MetricRow> {
+    let mut out = RUNG_METRICS.to_vec();
+    let of_benchmarks = super::benchmark::metrics().into_iter();
+    out.extend(of_benchmarks.map(|(b, m)| (m.name, b, m.title, m.decimals, None)));
+    out
+}
+
+/// Whether `metric` is a benchmark's (no rung), such as the command map's.
+fn is_benchmark_metric(metric: &str) -> bool {
+    super::benchmark::metric(metric).is_some()
 }
 
 /// `[verdicts]`: the pre-registered primary result and the families of secondary
@@ -115,12 +116,12 @@ impl Rung {
 
 impl ContrastKey {
     fn validate(&self, spec: &ExperimentSpec, at: &str) -> Result<()> {
-        if is_command_metric(&self.metric) {
-            self.validate_command_map(spec, at)?;
+        if is_benchmark_metric(&self.metric) {
+            self.validate_benchmark_metric(spec, at)?;
         } else {
             match &self.rung {
                 None => bail!(
-                    "{at} gives no rung: give a rung number or \"mean\" (only the command map's metrics have none)"
+                    "{at} gives no rung: give a rung number or \"mean\" (only a benchmark's own metrics, such as the command map's, have none)"
                 ),
                 Some(Rung::Named(n)) if n != "mean" => {
                     bail!("{at}.rung is {n:?}: give a rung number or \"mean\"")
@@ -128,8 +129,9 @@ impl ContrastKey {
                 _ => {}
             }
         }
-        if !METRICS.iter().any(|m| m.0 == self.metric) {
-            let known: Vec<&str> = METRICS.iter().map(|m| m.0).collect();
+        let all = metrics();
+        if !all.iter().any(|m| m.0 == self.metric) {
+            let known: Vec<&str> = all.iter().map(|m| m.0).collect();
             bail!(
                 "{at}.metric is {:?}; known metrics: {}",
                 self.metric,
@@ -150,12 +152,12 @@ impl ContrastKey {
         Ok(())
     }
 
-    /// A command-map metric: no rung but 0, a `[commands]` section mapping a
-    /// run of each of the two methods.
-    fn validate_command_map(&self, spec: &ExperimentSpec, at: &str) -> Result<()> {
+    /// A benchmark's metric (the command map's): no rung but 0, the benchmark's
+    /// section evaluating a run of each of the two methods.
+    fn validate_benchmark_metric(&self, spec: &ExperimentSpec, at: &str) -> Result<()> {
         if let Some(r) = self.rung.as_ref().filter(|r| **r != Rung::One(0)) {
             bail!(
-                "{at}.rung is {}: the command map ({}) has no severity rung; leave rung out",
+                "{at}.rung is {}: the benchmark of {} has no severity rung; leave rung out",
                 match r {
                     Rung::One(n) => n.to_string(),
                     Rung::Named(n) => format!("{n:?}"),
@@ -163,30 +165,17 @@ impl ContrastKey {
                 self.metric
             );
         }
-        let Some(c) = super::commands::CommandsSpec::of(spec)? else {
-            bail!(
-                "{at}.metric is {:?}, a command-map metric, but the experiment file has no [commands] section",
-                self.metric
-            );
-        };
-        for label in [&self.first, &self.second] {
-            if !c.maps_method_of(spec, label) {
-                bail!(
-                    "{at}.metric is {:?}, but commands.methods lists no run of {label:?}'s method",
-                    self.metric
-                );
-            }
-        }
-        Ok(())
+        let labels = [self.first.as_str(), self.second.as_str()];
+        super::benchmark::check_compared(spec, &self.metric, labels, at)
     }
 
     fn show(&self) -> String {
-        let title = METRICS
-            .iter()
+        let title = metrics()
+            .into_iter()
             .find(|m| m.0 == self.metric)
             .map_or(self.metric.as_str(), |m| m.2);
         match &self.rung {
-            Some(r) if !is_command_metric(&self.metric) => {
+            Some(r) if !is_benchmark_metric(&self.metric) => {
                 format!("{} - {}, {title}, {}", self.first, self.second, r.show())
             }
             _ => format!("{} - {}, {title}", self.first, self.second),
@@ -469,8 +458,8 @@ pub fn verdicts_csv(rows: &[SeedVerdict]) -> String {
 
 /// The metric's decimals and seconds per unit.
 fn metric_format(metric: &str) -> (usize, Option<f64>) {
-    METRICS
-        .iter()
+    metrics()
+        .into_iter()
         .find(|m| m.0 == metric)
         .map_or((3, None), |m| (m.3, m.4))
 }
