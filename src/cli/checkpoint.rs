@@ -9,9 +9,7 @@ use clap::{Args, Subcommand};
 use crate::learn::read_checkpoint;
 use crate::runner::load_policy;
 use crate::runner::manifest;
-use crate::runner::policy_file::{
-    is_actor_only, is_evaluation_only, save_actor_only, save_evaluation_only,
-};
+use crate::runner::policy_file::{is_run_state, save_actor_only, save_evaluation_only};
 
 #[derive(Debug, Args)]
 pub struct CheckpointArgs {
@@ -144,9 +142,7 @@ fn refuse_to_replace_a_run_state(checkpoint: &Path, out: &Path) -> Result<()> {
             out.display()
         );
     }
-    let resumes =
-        |m: &std::collections::HashMap<String, String>| !is_actor_only(m) && !is_evaluation_only(m);
-    if read_checkpoint(out).is_ok_and(|c| resumes(&c.metadata)) {
+    if read_checkpoint(out).is_ok_and(|c| is_run_state(&c.metadata)) {
         bail!(
             "--out {} already holds a full checkpoint (it resumes a run); remove it first or write elsewhere",
             out.display()

@@ -386,7 +386,7 @@ impl Default for CommandMapOptions {
 }
 
 impl CommandMapOptions {
-    fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         ensure!(
             self.robots > 0,
             "--robots {}: each cell needs at least 1 robot",

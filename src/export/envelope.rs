@@ -109,17 +109,7 @@ impl EnvelopeOptions {
 
     /// Checks every option against the policy's `ranges` before anything runs.
     pub fn validate(&self, ranges: &CommandConfig) -> Result<()> {
-        ensure!(
-            self.robots > 0,
-            "--robots {}: each cell needs at least 1 robot",
-            self.robots
-        );
-        if let Some(s) = self.episode_length_s {
-            ensure!(
-                s.is_finite() && s > 0.0,
-                "--seconds {s}: the episode length must be a positive number of seconds"
-            );
-        }
+        self.map_options().validate()?;
         self.grid(ranges).map(|_| ())
     }
 }

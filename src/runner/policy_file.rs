@@ -138,6 +138,12 @@ pub fn is_evaluation_only(meta: &HashMap<String, String>) -> bool {
     meta.get("contents").map(String::as_str) == Some(EVALUATION_ONLY)
 }
 
+/// Whether checkpoint metadata `meta` marks a full run state (neither an
+/// actor-only nor an evaluation file): what training can continue from.
+pub fn is_run_state(meta: &HashMap<String, String>) -> bool {
+    !is_actor_only(meta) && !is_evaluation_only(meta)
+}
+
 /// Whether a tensor is optimiser state (Adam's moments and step counts, the
 /// adaptation module's too): what training needs and evaluation never reads.
 fn is_optimiser_state(name: &str) -> bool {
