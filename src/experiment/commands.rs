@@ -17,7 +17,7 @@ use super::benchmark::{Benchmark, BenchmarkContext, BenchmarkMetric, Evaluated};
 use super::contrasts::{Contrast, CONTRAST_LEVEL};
 use super::curves::Resampling;
 use super::final_policy::load_final_policy;
-use super::kcheck::checkpoint_path;
+use super::last_checkpoints::checkpoint_path;
 use super::pooled::{methods_of, Method};
 use super::spec::{ExperimentSpec, RunSpec};
 use super::stats::{cell_seed, mean, percentile, Estimate};

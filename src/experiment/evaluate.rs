@@ -14,7 +14,7 @@ use super::final_policy::{
 };
 use super::results::{ExperimentResults, RunTracking};
 use super::spec::{self, ExperimentSpec, MetaSpec};
-use super::{critic_tail, kcheck, ladder, risk_signal, stats};
+use super::{critic_tail, ladder, last_checkpoints, risk_signal, stats};
 use super::{run_state, ExperimentOptions, RunState};
 use crate::config::TrainConfig;
 use crate::env::{build_scene, EnvConfig, VecEnv};
@@ -308,16 +308,17 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let ttf = if ttf_methods.is_empty() {
         None
     } else {
-        let (report, s) = kcheck::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, &cache, |c| {
-            eprintln!(
-                "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
-                c.load.name(),
-                c.terrain,
-                c.push,
-                c.policy,
-                c.ttf
-            )
-        })?;
+        let (report, s) =
+            last_checkpoints::evaluate_ttf_runs(spec, &ttf_methods, &ttf_opts, &cache, |c| {
+                eprintln!(
+                    "  {:<10} {:<6} push {:<5} {:<14} TTF {:.3}",
+                    c.load.name(),
+                    c.terrain,
+                    c.push,
+                    c.policy,
+                    c.ttf
+                )
+            })?;
         spread.extend(s);
         Some(report)
     };
@@ -328,13 +329,18 @@ pub fn evaluate_all(spec: &ExperimentSpec, opts: &ExperimentOptions) -> Result<E
     let platform = if platform_methods.is_empty() {
         None
     } else {
-        let (report, s) =
-            kcheck::evaluate_platform_runs(spec, &platform_methods, &platform_opts, &cache, |c| {
+        let (report, s) = last_checkpoints::evaluate_platform_runs(
+            spec,
+            &platform_methods,
+            &platform_opts,
+            &cache,
+            |c| {
                 eprintln!(
                     "  {:.2} m {:<14} success {:.1}%",
                     c.height_m, c.policy, c.success_pct
                 )
-            })?;
+            },
+        )?;
         spread.extend(s);
         Some(report)
     };
@@ -438,7 +444,7 @@ fn finish_results(
     spec: &ExperimentSpec,
     results: &mut ExperimentResults,
     critic_tail: Option<critic_tail::CriticTail>,
-    spread: Vec<kcheck::CheckpointSpread>,
+    spread: Vec<last_checkpoints::CheckpointSpread>,
 ) -> Result<()> {
     results.critic_tail = critic_tail;
     results.preface = spec.preface_text()?;

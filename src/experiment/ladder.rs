@@ -10,7 +10,7 @@ use super::contrasts::{contrasts_at, Contrast};
 use super::curves::{platform_point, race_point, ttf_point, CurvePoint, Resampling};
 use super::evaluate::seeds;
 use super::final_policy::load_runs;
-use super::kcheck::{evaluate_platform_runs, evaluate_ttf_runs};
+use super::last_checkpoints::{evaluate_platform_runs, evaluate_ttf_runs};
 use super::pooled::methods_of;
 use super::spec::{CurvesSpec, ExperimentSpec};
 use crate::eval::race::evaluate_race_cached;

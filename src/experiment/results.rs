@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 use super::clock::PhaseTime;
 use super::contrasts::Contrast;
 use super::curves::CurvePoint;
-use super::kcheck::CheckpointSpread;
+use super::last_checkpoints::CheckpointSpread;
 use super::pooled::MethodTables;
 use super::spec::{ExperimentSpec, RunSpec};
 use super::stats::{bootstrap, cell_seed, mean, quantile, Estimate};

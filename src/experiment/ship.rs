@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 
 use super::final_policy::selected_in;
 use super::spec::{self, ExperimentSpec};
-use super::{kcheck, selection};
+use super::{last_checkpoints, selection};
 use super::{run_state, run_target};
 use crate::fsio::copy_atomic;
 use crate::runner::manifest;
@@ -205,7 +205,7 @@ fn ship_headline_checkpoints(
 /// The iterations whose checkpoints a run of `target` iterations ships: its
 /// headline checkpoints, then its milestones before the target.
 fn shipped_iterations(c: &spec::CheckpointsSpec, target: usize) -> Vec<usize> {
-    let mut its = kcheck::headline_iterations(c, target).unwrap_or_default();
+    let mut its = last_checkpoints::headline_iterations(c, target).unwrap_or_default();
     for &m in &c.milestones {
         if m > 0 && m < target && !its.contains(&m) {
             its.push(m);

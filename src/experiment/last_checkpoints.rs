@@ -69,7 +69,7 @@ pub fn checkpoint_path(spec: &ExperimentSpec, r: &RunSpec, it: usize) -> Result<
 
 /// Checkpoint `k` (0 = the newest) of each run labelled in `labels`, named by
 /// the run's label.
-pub fn load_kth(
+pub fn load_kth_checkpoint(
     spec: &ExperimentSpec,
     c: &CheckpointsSpec,
     labels: &[String],
@@ -284,14 +284,14 @@ pub fn evaluate_ttf_runs(
             ..opts.clone()
         };
         reports.push(evaluate_ttf_cached(
-            &load_kth(spec, c, labels, k)?,
+            &load_kth_checkpoint(spec, c, labels, k)?,
             &opts_k,
             cache,
             &mut progress,
         )?);
     }
     let (pooled, per) = pool_ttf(reports)?;
-    Ok((pooled, spreads(spec, c, "ttf", per)?))
+    Ok((pooled, checkpoint_spreads(spec, c, "ttf", per)?))
 }
 
 /// Table II on the runs `labels`, as [`evaluate_ttf_runs`].
@@ -319,17 +319,17 @@ pub fn evaluate_platform_runs(
             ..opts.clone()
         };
         reports.push(evaluate_platform_cached(
-            &load_kth(spec, c, labels, k)?,
+            &load_kth_checkpoint(spec, c, labels, k)?,
             &opts_k,
             cache,
             &mut progress,
         )?);
     }
     let (pooled, per) = pool_platform(reports)?;
-    Ok((pooled, spreads(spec, c, "platform", per)?))
+    Ok((pooled, checkpoint_spreads(spec, c, "platform", per)?))
 }
 
-fn spreads(
+fn checkpoint_spreads(
     spec: &ExperimentSpec,
     c: &CheckpointsSpec,
     benchmark: &'static str,
