@@ -187,18 +187,18 @@ fn cutting_the_same_actor_twice_leaves_the_file_alone() {
     let src = run_state(&dir, 1);
     let other = run_state(&dir, 2);
     let copy = dir.join("actor.safetensors");
-    rall::runner::policy_file::save_actor_only(&src, &copy).unwrap();
+    rall::runner::checkpoint_kinds::save_actor_only(&src, &copy).unwrap();
     let first = std::fs::read(&copy).unwrap();
     // several tries: a rewrite would order the metadata afresh each time
     for _ in 0..4 {
-        rall::runner::policy_file::save_actor_only(&src, &copy).unwrap();
+        rall::runner::checkpoint_kinds::save_actor_only(&src, &copy).unwrap();
         assert!(
             std::fs::read(&copy).unwrap() == first,
             "the copy was rewritten"
         );
     }
     // a different source does replace it
-    rall::runner::policy_file::save_actor_only(&other, &copy).unwrap();
+    rall::runner::checkpoint_kinds::save_actor_only(&other, &copy).unwrap();
     let b = rall::runner::load_policy(&copy).unwrap();
     assert_eq!(b.config.runner.seed, 2);
     let _ = std::fs::remove_dir_all(&dir);

@@ -7,9 +7,9 @@ use anyhow::{bail, Result};
 use clap::{Args, Subcommand};
 
 use crate::learn::read_checkpoint;
+use crate::runner::checkpoint_kinds::{is_run_state, save_actor_only, save_evaluation_only};
 use crate::runner::load_policy;
 use crate::runner::manifest;
-use crate::runner::policy_file::{is_run_state, save_actor_only, save_evaluation_only};
 
 #[derive(Debug, Args)]
 pub struct CheckpointArgs {

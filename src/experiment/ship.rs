@@ -13,8 +13,8 @@ use super::spec::{self, ExperimentSpec};
 use super::{last_checkpoints, selection};
 use super::{run_state, run_target};
 use crate::fsio::copy_atomic;
+use crate::runner::checkpoint_kinds::{is_actor_only, save_actor_only, save_evaluation_only};
 use crate::runner::manifest;
-use crate::runner::policy_file::{is_actor_only, save_actor_only, save_evaluation_only};
 use crate::runner::{RunDir, LATEST};
 
 /// Files of a run that travel with its checkpoint.

@@ -1,7 +1,8 @@
 //! Checkpoints as safetensors files (`f32` tensors, little endian, plus `u8`
 //! byte tensors for state kept bit for bit) with a caller-supplied
 //! `__metadata__` string map (the runner stores config TOML, observation layout
-//! and version there). Writes are atomic: `<path>.tmp`, fsync, rename.
+//! and version there: `runner::checkpoint_kinds`). Writes are atomic: `<path>.tmp`,
+//! fsync, rename.
 //!
 //! Integrity: every file carries a SHA-256 of each tensor (its name, dtype,
 //! shape and bytes) under the metadata key `sha256.<tensor>`, and one of the

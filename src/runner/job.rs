@@ -9,9 +9,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use anyhow::{Context, Result};
 use rand_chacha::ChaCha8Rng;
 
+use super::checkpoint_kinds::Progress;
 use super::dist::{diverged_ranks, hash_f32, World};
 use super::metrics::EpisodeStats;
-use super::policy_file::Progress;
 use super::resume::gather_rank_states;
 use super::run_dir::{save_both, RunDir};
 use crate::config::TrainConfig;

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
-use super::policy_file::{load_policy, save_policy, Progress};
+use super::checkpoint_kinds::{load_policy, save_policy, Progress};
 use crate::config::TrainConfig;
 use crate::learn::Learner;
 

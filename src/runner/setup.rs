@@ -6,10 +6,10 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 
+use super::checkpoint_kinds::{load_policy_bytes, LoadedPolicy, Progress};
 use super::dist::World;
 use super::identity::{resumed_identity, RunIdentity};
 use super::job::broadcast_learner_state;
-use super::policy_file::{load_policy_bytes, LoadedPolicy, Progress};
 use super::resume::exact_state;
 use super::run_dir::RunDir;
 use super::status::ranks_note;

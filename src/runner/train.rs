@@ -22,11 +22,11 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::adapt::{adaptation_phase, PhaseWorld};
+use super::checkpoint_kinds::Progress;
 use super::dist::{rank_seed, World};
 use super::faults::FaultHooks;
 use super::job::{any_rank_stopped, check_same_state, save_job_checkpoint, JobIteration};
 use super::metrics::{CollectTimes, EpisodeStats, IterationRow, MetricsCsv};
-use super::policy_file::Progress;
 use super::resume::start_envs;
 use super::setup::{open_run, Opened};
 use super::status::{log_line, progress_bar, status_line, time_split};

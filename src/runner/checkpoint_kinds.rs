@@ -1,5 +1,9 @@
-//! Checkpoint files of a run: learner state + runner state + metadata
-//! (config, observation layout, version). Written atomically by `learn::checkpoint`.
+//! What a rall checkpoint holds and its three kinds: the full run state (learner
+//! state + runner state + metadata: config, observation layout, version), which
+//! training resumes from; actor-only files; evaluation-only files. Saving each
+//! kind, telling them apart, and loading any of them into a policy, refusing a
+//! file this build cannot read. The safetensors container with its checksums
+//! and atomic writes is `learn::checkpoint`.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
