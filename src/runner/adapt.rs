@@ -25,8 +25,10 @@ use crate::learn::{LatentSource, Learner};
 /// Columns of `adaptation.csv`.
 pub const ADAPTATION_HEADER: &str = "iteration,wall_s,total_env_steps,collect_s,learn_s,latent_mse_before,latent_mse,episodes,mean_return,lin_tracking_score,fall_fraction,terrain_level";
 
-/// What phase 2 needs to rebuild the envs with a wider observation.
-pub(super) struct PhaseWorld<'a> {
+/// What phase 2 needs to rebuild the envs with a wider observation: the
+/// scene (model and terrain), the env threads and the env seed. Not the MPI
+/// [`super::World`]: phase 2 runs in one process.
+pub(super) struct EnvRebuildInputs<'a> {
     pub scene: &'a Scene,
     pub threads: usize,
     pub env_seed: u64,
@@ -42,7 +44,7 @@ fn add_history(
     learner: &mut Learner,
     envs: &mut VecEnv,
     obs: &mut Vec<f32>,
-    world: &PhaseWorld,
+    rebuild: &EnvRebuildInputs,
 ) -> Result<()> {
     let mut next = cfg.clone();
     next.env.observation.groups.push(ObsGroup::History);
@@ -58,11 +60,11 @@ fn add_history(
         .context("carrying the teacher into phase 2")?;
     let mut venv = VecEnv::new(
         Arc::new(next.env.clone()),
-        &world.scene.model,
-        world.scene.terrain.clone(),
+        &rebuild.scene.model,
+        rebuild.scene.terrain.clone(),
         next.runner.num_envs,
-        world.threads,
-        world.env_seed ^ 0xADA9,
+        rebuild.threads,
+        rebuild.env_seed ^ 0xADA9,
     )?;
     // phase 1's live levels (a checkpoint's stored ones may hold every MPI rank's)
     if let Some(levels) = envs.terrain_levels() {
@@ -87,7 +89,7 @@ pub(super) fn adaptation_phase(
     progress: &mut Progress,
     envs: &mut VecEnv,
     obs: &mut Vec<f32>,
-    world: &PhaseWorld,
+    rebuild: &EnvRebuildInputs,
     stop: &AtomicBool,
     bar: &ProgressBar,
 ) -> Result<(bool, Option<PathBuf>)> {
@@ -99,7 +101,7 @@ pub(super) fn adaptation_phase(
         return Ok((false, None));
     }
     if cfg.env.obs_layout().range(&a.input).is_none() {
-        add_history(dir, cfg, learner, envs, obs, world)?;
+        add_history(dir, cfg, learner, envs, obs, rebuild)?;
     }
     let r = &cfg.runner;
     let cfg = &*cfg;

@@ -21,7 +21,7 @@ use indicatif::ProgressBar;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::adapt::{adaptation_phase, PhaseWorld};
+use super::adapt::{adaptation_phase, EnvRebuildInputs};
 use super::checkpoint_kinds::Progress;
 use super::dist::{rank_seed, World};
 use super::faults::FaultHooks;
@@ -446,7 +446,7 @@ impl<'w> Trainer<'w> {
 
     /// RMA's phase 2 (nothing for a run without one); whether it was stopped.
     fn run_adaptation_phase(&mut self) -> Result<bool> {
-        let world = PhaseWorld {
+        let rebuild = EnvRebuildInputs {
             scene: &self.scene,
             threads: self.threads,
             env_seed: self.env_seed,
@@ -458,7 +458,7 @@ impl<'w> Trainer<'w> {
             &mut self.progress,
             &mut self.envs,
             &mut self.obs,
-            &world,
+            &rebuild,
             &self.stop,
             &self.bar,
         )?;
