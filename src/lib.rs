@@ -20,7 +20,9 @@
 //! - `export`, `viz`, `config`, `cli`: ONNX and its sidecar; rerun recordings; the run
 //!   config; the subcommands. (These need the default `sim` feature.)
 //!
-//! Module map, every file (each opens with a paragraph on what it holds):
+//! Module map, every file (each opens with a paragraph on what it holds); the
+//! top-level `config`, `fsio`, `hash`, `memory` and `progress` are in the layers above,
+//! and `main.rs` is the `rall` binary over `cli`:
 //! - `sim`: `data`, `error`, `ffi` (bindgen), `model`, `shim` (guarded MuJoCo calls).
 //! - `robot`: `layout` (parts by name), `params` (randomisable values), `pd` (torques),
 //!   `standing` (the standing check).
@@ -36,7 +38,8 @@
 //! - `runner`: `train` (the `Trainer` loop), `setup` (fresh start or resume),
 //!   `run_dir` (files and lock), `job` (what crosses MPI ranks), `status` (bar and log
 //!   lines), `faults` (fault injection, divergence stop), `identity` (which run a
-//!   checkpoint belongs to), `metrics`, `policy_file`, `manifest` (shipped weights
+//!   checkpoint belongs to), `metrics`, `checkpoint_kinds` (a checkpoint's contents:
+//!   full run state, actor-only, evaluation-only; save and load), `manifest` (shipped weights
 //!   and their SHA-256), `resume` (exact-resume state),
 //!   `adapt` (RMA phase 2 in a run), `dist` (MPI world), `scaling` (`rall bench
 //!   scaling`: where an iteration's time goes, projected to more cores).
@@ -45,13 +48,20 @@
 //!   `jobs` (parallel rollouts), `policy` (checkpoint and ONNX policies), `rall_graph`,
 //!   `sidecar` (outside policies' sidecars), `commands` (the command-space safety map)
 //!   and `commands_plot`.
-//! - `experiment`: `spec`, `training`, `selection`, `final_policy`, `kcheck`, `evaluate`,
+//! - `experiment`: `spec`, `training`, `selection`, `final_policy`, `last_checkpoints`
+//!   (benchmarks over each run's last K checkpoints, pooled), `benchmark` (the
+//!   `Benchmark` trait), `evaluate`, `commands` (the command map as a benchmark),
+//!   `commands_report` (its tables and README section), `command_plots` (its figures),
 //!   `stats`, `pooled`, `curves`, `ladder`, `contrasts`, `verdicts` (pre-registered
 //!   seed-level verdicts), `critic_tail`, `risk_signal`, `results` (`csv_tables`, `readme`,
 //!   `write`), `plots`, `curve_plots`, `ship`, `status`, `clock`.
 //! - `stats`: `seed_test` (Welch, permutation, Holm, power), `student_t`.
-//! - `export`: `onnx` (the protobuf subset), `deploy`; `viz`: `episode`, `play`, `train`, `value`,
-//!   `blueprint`, `sink`, `rrd`, `convert`; `cli`: one file per subcommand.
+//! - `export`: `onnx` (the protobuf subset), `deploy` (the sidecar's deployment sections),
+//!   `envelope` (the safe command envelope).
+//! - `viz`: `episode`, `play`, `train`, `value`, `blueprint`, `sink`, `rrd`, `convert`.
+//! - `cli`: one file per subcommand: `train`, `eval`, `experiment`, `export`, `play`,
+//!   `checkpoint` (inspect, slim copies, manifest), `inspect` (a model file),
+//!   `calibrate` (`rall calibrate-risk`), `bench` (env, comm, scaling).
 //!
 //! `unsafe` is refused everywhere but in `sim`, the audited GEMM, AMX and
 //! AVX512-BF16 kernels (`learn::mat::gemm`, `learn::amx`, `learn::bf16_avx512`) and the
